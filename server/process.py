@@ -1,0 +1,31 @@
+"""Process liveness, as the rings need it to take slots back from dead peers."""
+
+from __future__ import annotations
+
+import os
+
+
+def pid_alive(pid: int) -> bool:
+    """True if ``pid`` names a running (not zombie) process visible from here.
+
+    A killed child that its parent has not reaped yet is a zombie: ``kill(pid, 0)``
+    still succeeds on it, so /proc is consulted first where it exists.
+    """
+    if pid <= 0:
+        return False
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            stat = f.read()
+        state = stat[stat.rfind(b")") + 2 : stat.rfind(b")") + 3]
+        return state not in (b"Z", b"X")
+    except FileNotFoundError:
+        return False
+    except OSError:
+        pass
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
