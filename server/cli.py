@@ -1,0 +1,67 @@
+"""The ``upcast`` command line: one subcommand module per job under server/commands/."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+from collections.abc import Callable, Sequence
+
+# name -> module under server.commands; each module has add_arguments(parser) and run(args).
+# Imported lazily so `upcast --help` does not pay for torch.
+COMMANDS: dict[str, tuple[str, str]] = {
+    "render": ("render", "render a scene to PNG and .npz files for a person to look at"),
+    "bench": ("bench", "benchmarks that write the JSON report of DESIGN.md"),
+    "worker": ("worker", "run the upscaler worker on existing rings (normally started for you)"),
+    "game": ("game", "run the reference game into ring R (normally started for you)"),
+    "up": ("up", "start game, upscaler worker and a preview page; print where to watch"),
+}
+
+
+def _load(module: str) -> tuple[Callable[[argparse.ArgumentParser], None], Callable[..., int]]:
+    mod = importlib.import_module(f"server.commands.{module}")
+    return mod.add_arguments, mod.run
+
+
+def build_parser(selected: str | None = None) -> argparse.ArgumentParser:
+    """The parser; only the ``selected`` command's module is imported (the rest
+    are listed by name), so one command's heavy imports never slow another."""
+    parser = argparse.ArgumentParser(
+        prog="upcast",
+        description="upcast: cloud-gaming streaming server with a decoupled upscaler worker",
+    )
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for name, (module, help_text) in COMMANDS.items():
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        if name == selected:
+            add_arguments, run = _load(module)
+            add_arguments(p)
+            p.set_defaults(handler=run)
+    return parser
+
+
+def _selected_command(argv: Sequence[str]) -> str | None:
+    for arg in argv:
+        if not arg.startswith("-"):
+            return arg if arg in COMMANDS else None
+    return None
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser(_selected_command(argv))
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.INFO,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+    try:
+        return int(args.handler(args))
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

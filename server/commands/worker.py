@@ -1,0 +1,40 @@
+"""``upcast worker``: the upscaler worker process on existing rings."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from server.config_errors import format_validation_error
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--ring-in", required=True, help="ring R name (G-buffers)")
+    parser.add_argument("--ring-out", required=True, help="ring U name (display frames)")
+    parser.add_argument("--upscaler", default="bilinear", help="initial upscaler")
+    parser.add_argument("--display-size", default="1280x720", help="WIDTHxHEIGHT")
+    parser.add_argument("--control", type=Path, default=None, help="Unix control socket path")
+    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    parser.add_argument("--newest", action="store_true", help="skip to the newest frame")
+
+
+def run(args: argparse.Namespace) -> int:
+    from pydantic import ValidationError
+
+    from server.worker import WorkerConfig, run_worker
+
+    try:
+        config = WorkerConfig(
+            ring_in=args.ring_in,
+            ring_out=args.ring_out,
+            upscaler=args.upscaler,
+            display_size=args.display_size,
+            control_path=args.control,
+            threads=args.threads,
+            newest=args.newest,
+        )
+    except ValidationError as exc:
+        print(format_validation_error("worker", exc), file=sys.stderr)
+        return 2
+    return run_worker(config)

@@ -1,0 +1,31 @@
+"""The one upscaler interface: frame contract in, display-size frame out."""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from typing import ClassVar
+
+import torch
+
+from server.frame import RenderFrame, Size
+
+
+class Upscaler(ABC):
+    """Turns a render-size frame (ring R contract) into a display-size image.
+
+    ``upscale`` returns a (3, H, W) tensor: uint8 when the method works on
+    quantized values (the fast resamplers), float32 sRGB in nominal [0, 1]
+    otherwise. ``quantize_into`` turns either into the ring U slot's bytes, so
+    the in-process and the decoupled path produce the same bits.
+    """
+
+    name: ClassVar[str]
+    # Temporal methods keep history; the worker calls reset() on FrameFlags.RESET
+    # frames and on size changes.
+    temporal: ClassVar[bool] = False
+
+    @abstractmethod
+    def upscale(self, frame: RenderFrame, display_size: Size) -> torch.Tensor: ...
+
+    def reset(self) -> None:  # noqa: B027 - stateless methods have nothing to reset
+        """Forget any history (scene cut, resolution change)."""

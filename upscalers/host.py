@@ -1,0 +1,72 @@
+"""UpscalerHost: runs the configured upscaler on frames, in or out of process.
+
+It owns what a method should not have to think about: sanitizing input,
+resetting history on RESET frames and size changes, switching methods at run
+time. The worker process and in-process callers use this same class, which is
+why the decoupled path gives the same bits as a direct call.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import torch
+
+from server.frame import FrameFlags, RenderFrame, Size
+from upscalers import registry
+from upscalers.base import Upscaler
+from upscalers.sanitize import SanitizeReport, sanitize_frame
+
+log = logging.getLogger(__name__)
+
+_WARN_EVERY_S = 5.0
+
+
+class UpscalerHost:
+    def __init__(self, name: str, display_size: Size) -> None:
+        self.upscaler: Upscaler = registry.create(name)
+        self.display_size = display_size
+        self._last_input_size: Size | None = None
+        self.sanitized_values = 0
+        self.sanitized_frames = 0
+        self._last_warning = 0.0
+
+    @property
+    def name(self) -> str:
+        return self.upscaler.name
+
+    def switch(self, name: str) -> None:
+        """Use another method from the next frame on (raises ValueError if unknown)."""
+        if name == self.upscaler.name:
+            return
+        new = registry.create(name)
+        log.info("upscaler switched: %s -> %s", self.upscaler.name, name)
+        self.upscaler = new
+        self._last_input_size = None
+
+    def upscale(self, frame: RenderFrame) -> torch.Tensor:
+        """Sanitize, reset history when needed, upscale. Returns the method's tensor."""
+        frame, report = sanitize_frame(frame)
+        if report.total:
+            self._note_sanitized(frame.meta.frame_id, report)
+        if frame.meta.flags & FrameFlags.RESET or frame.size != self._last_input_size:
+            self.upscaler.reset()
+            self._last_input_size = frame.size
+        return self.upscaler.upscale(frame, self.display_size)
+
+    def _note_sanitized(self, frame_id: int, report: SanitizeReport) -> None:
+        self.sanitized_values += report.total
+        self.sanitized_frames += 1
+        now = time.monotonic()
+        if now - self._last_warning >= _WARN_EVERY_S:
+            self._last_warning = now
+            log.warning(
+                "frame %d: replaced %d non-finite depth, %d motion, %d camera values "
+                "(%d frames sanitized so far)",
+                frame_id,
+                report.depth_fixed,
+                report.motion_fixed,
+                report.meta_fixed,
+                self.sanitized_frames,
+            )

@@ -1,0 +1,25 @@
+"""Config names -> upscaler classes. New methods register here, nowhere else."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from upscalers.base import Upscaler
+from upscalers.resample import BicubicUpscaler, BilinearUpscaler, NearestUpscaler
+
+_REGISTRY: dict[str, Callable[[], Upscaler]] = {
+    cls.name: cls for cls in (NearestUpscaler, BilinearUpscaler, BicubicUpscaler)
+}
+
+
+def available() -> list[str]:
+    return sorted(_REGISTRY)
+
+
+def create(name: str) -> Upscaler:
+    """A new upscaler by config name; unknown names list the allowed ones."""
+    try:
+        factory = _REGISTRY[name]
+    except KeyError:
+        raise ValueError(f"unknown upscaler {name!r}; allowed: {', '.join(available())}") from None
+    return factory()
