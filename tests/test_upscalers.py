@@ -28,7 +28,7 @@ def make_frame(size: Size, seed: int = 0, flags: FrameFlags = FrameFlags.NONE) -
 
 def test_registry_lists_and_refuses_unknown() -> None:
     assert {"nearest", "bilinear", "bicubic"} <= set(registry.available())
-    with pytest.raises(ValueError, match="allowed: .*bilinear"):
+    with pytest.raises(ValueError, match=r"allowed: .*bilinear"):
         registry.create("lanczos9")
 
 

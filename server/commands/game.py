@@ -1,0 +1,51 @@
+"""``upcast game``: the reference game rendering into an existing ring R."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import threading
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--ring", required=True, help="ring R name to produce into")
+    parser.add_argument("--scene", default="default", help="scene preset")
+    parser.add_argument("--size", default="640x360", help="render size WIDTHxHEIGHT")
+    parser.add_argument("--scale", type=float, default=2.0, help="display / render (jitter phases)")
+    parser.add_argument("--fps", type=float, default=60.0, help="frames per second")
+    parser.add_argument("--seed", type=int, default=0, help="scene seed")
+    parser.add_argument("--duration", type=float, default=None, help="seconds (default: forever)")
+    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    parser.add_argument("--input", type=Path, default=None, help="Unix socket for player input")
+
+
+def run(args: argparse.Namespace) -> int:
+    import torch
+
+    from server.frame import Size
+    from server.game import GameLoop
+    from server.game_input import InputReceiver
+    from server.render.renderer import Renderer
+    from server.ring_frames import attach_render_ring
+
+    torch.set_num_threads(args.threads)
+    stop = threading.Event()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: stop.set())
+    renderer = Renderer(args.scene, Size.parse(args.size), seed=args.seed, scale=args.scale)
+    ring = attach_render_ring(args.ring, wait_s=10)
+    loop = GameLoop(renderer, ring, args.fps)
+    receiver = InputReceiver(args.input, loop.push_input) if args.input else None
+    log.info("game: scene %s at %s, %.0f fps into %s", args.scene, args.size, args.fps, args.ring)
+    try:
+        stats = loop.run(stop, duration_s=args.duration)
+    finally:
+        if receiver is not None:
+            receiver.close()
+        ring.close()
+    log.info("game stopped: %s", stats)
+    return 0

@@ -1,0 +1,133 @@
+"""The game loop: render at a fixed rate straight into ring R, apply player input.
+
+Game time is ``frame_index / fps`` (not the wall clock), so a run is
+deterministic for the same input sequence however the machine keeps up. The
+loop paces against absolute deadlines; a frame that starts late is counted and
+the schedule resyncs instead of rushing to catch up.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+from server.frame import RenderFrame, Size
+from server.render.renderer import RenderTargets
+from server.ring import FrameRing
+from server.ring_frames import write_meta
+from server.timing import Stage, stamp
+
+log = logging.getLogger(__name__)
+
+
+class FrameRenderer(Protocol):
+    """What the loop needs of a renderer (server.render.Renderer is one)."""
+
+    render_size: Size
+
+    def render(
+        self, frame_index: int, t: float, targets: RenderTargets | None = None
+    ) -> RenderFrame: ...
+
+    def apply_input(self, event: Any) -> None: ...
+
+
+@dataclass
+class GameStats:
+    frames: int = 0
+    late_frames: int = 0
+    ring_timeouts: int = 0
+    render_errors: int = 0
+
+
+class GameLoop:
+    def __init__(self, renderer: FrameRenderer, ring: FrameRing, fps: float) -> None:
+        if fps <= 0:
+            raise ValueError(f"fps must be positive, got {fps}")
+        size = renderer.render_size
+        if size.width > ring.max_width or size.height > ring.max_height:
+            raise ValueError(
+                f"render size {size} exceeds ring R capacity {ring.max_width}x{ring.max_height}"
+            )
+        self.renderer = renderer
+        self.ring = ring
+        self.fps = fps
+        self.stats = GameStats()
+        self._inputs: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        ring.attach_as_producer()
+
+    def push_input(self, event: Any) -> None:
+        """Queue an input event (thread-safe); applied at the start of the next frame."""
+        self._inputs.put(event)
+
+    def _drain_inputs(self) -> None:
+        while True:
+            try:
+                event = self._inputs.get_nowait()
+            except queue.Empty:
+                return
+            self.renderer.apply_input(event)
+
+    def step(self, frame_index: int) -> bool:
+        """Render one frame into ring R. False if no slot came in time (frame dropped)."""
+        render_start = time.monotonic_ns(), time.time_ns()
+        self._drain_inputs()
+        # Real-time rings never make the game wait; a lossless ring may, briefly.
+        lease = self.ring.acquire_write(timeout_s=1.0 / self.fps)
+        if lease is None:
+            self.stats.ring_timeouts += 1
+            return False
+        with lease:
+            size = self.renderer.render_size
+            # The renderer writes its final planes straight into the slot.
+            targets = RenderTargets(**lease.views(size.width, size.height))
+            try:
+                frame = self.renderer.render(frame_index, frame_index / self.fps, targets)
+            except Exception:
+                self.stats.render_errors += 1
+                log.exception("render of frame %d failed; frame skipped", frame_index)
+                return False
+            meta = frame.meta
+            meta.stamps[Stage.RENDER_START] = render_start
+            stamp(meta.stamps, Stage.RENDER_END)
+            write_meta(lease.header, meta)
+            lease.commit(stamp_stage=Stage.RING_R_READY)
+        self.stats.frames += 1
+        return True
+
+    def run(
+        self,
+        stop: threading.Event,
+        *,
+        duration_s: float | None = None,
+        max_frames: int | None = None,
+    ) -> GameStats:
+        period = 1.0 / self.fps
+        start = time.monotonic()
+        next_deadline = start
+        index = 0
+        last_report = start
+        while not stop.is_set():
+            if max_frames is not None and index >= max_frames:
+                break
+            now = time.monotonic()
+            if duration_s is not None and now - start >= duration_s:
+                break
+            if now < next_deadline:
+                stop.wait(next_deadline - now)
+                if stop.is_set():
+                    break
+            elif now - next_deadline > period:
+                self.stats.late_frames += 1
+                next_deadline = now  # resync: never render a burst to catch up
+            self.step(index)
+            index += 1
+            next_deadline += period
+            if now - last_report >= 10.0:
+                last_report = now
+                log.info("game: %s", self.stats)
+        return self.stats

@@ -1,0 +1,186 @@
+"""A local session: rings, the game process and the upscaler worker process.
+
+Each part is its own OS process started from the ``upcast`` CLI, so the
+worker shares nothing with the game but the ring names, exactly as an engine
+written in another language would. The stack restarts a worker that dies; the
+game keeps rendering meanwhile (ring R is real-time: it overwrites, never
+waits).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import subprocess
+import sys
+import tempfile
+import time
+import uuid
+from pathlib import Path
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from server.frame import Size
+from server.ring import FrameRing
+from server.ring_frames import create_display_ring, create_render_ring
+from upscalers import registry
+
+log = logging.getLogger(__name__)
+
+
+class SessionConfig(BaseModel):
+    """One game session; validated at start with errors that name the field."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    scene: str = Field(default="default", description="scene preset of the reference game")
+    render_size: str = Field(default="640x360", description="game render size WIDTHxHEIGHT")
+    display_size: str = Field(default="1280x720", description="upscaled size WIDTHxHEIGHT")
+    fps: float = Field(default=60.0, gt=0, le=240, description="game frame rate")
+    upscaler: str = Field(default="bilinear", description="initial upscaler")
+    seed: int = Field(default=0, description="scene seed")
+    game_threads: int = Field(default=1, ge=1, description="torch threads in the game")
+    worker_threads: int = Field(default=1, ge=1, description="torch threads in the worker")
+    slots: int = Field(default=3, ge=2, le=16, description="slots per ring")
+    name: str = Field(default_factory=lambda: f"upcast-{os.getpid()}-{uuid.uuid4().hex[:6]}")
+
+    @field_validator("render_size", "display_size")
+    @classmethod
+    def _size(cls, v: str) -> str:
+        Size.parse(v)
+        return v
+
+    @field_validator("upscaler")
+    @classmethod
+    def _upscaler(cls, v: str) -> str:
+        if v not in registry.available():
+            raise ValueError(f"unknown upscaler {v!r}; allowed: {', '.join(registry.available())}")
+        return v
+
+    @field_validator("scene")
+    @classmethod
+    def _scene(cls, v: str) -> str:
+        from server.render.scenes import SCENE_NAMES
+
+        if v not in SCENE_NAMES:
+            raise ValueError(f"unknown scene {v!r}; allowed: {', '.join(SCENE_NAMES)}")
+        return v
+
+    @model_validator(mode="after")
+    def _render_not_larger(self) -> SessionConfig:
+        r, d = Size.parse(self.render_size), Size.parse(self.display_size)
+        if r.width > d.width or r.height > d.height:
+            raise ValueError(f"render_size {r} is larger than display_size {d}")
+        return self
+
+    @property
+    def scale(self) -> float:
+        return Size.parse(self.display_size).width / Size.parse(self.render_size).width
+
+
+def _cli(*args: str) -> list[str]:
+    return [sys.executable, "-m", "server.cli", *args]
+
+
+class LocalStack:
+    """Owns the rings and the child processes of one session."""
+
+    def __init__(self, config: SessionConfig, *, game_duration_s: float | None = None) -> None:
+        self.config = config
+        self.ring_r_name = f"{config.name}-r"
+        self.ring_u_name = f"{config.name}-u"
+        self.control_path = Path(tempfile.gettempdir()) / f"{config.name}.ctl"
+        self.input_path = Path(tempfile.gettempdir()) / f"{config.name}.input"
+        self._game_duration_s = game_duration_s
+        self.ring_r: FrameRing | None = None
+        self.ring_u: FrameRing | None = None
+        self.game: subprocess.Popen[bytes] | None = None
+        self.worker: subprocess.Popen[bytes] | None = None
+        self.worker_restarts = 0
+
+    def start(self) -> None:
+        c = self.config
+        display = Size.parse(c.display_size)
+        # Ring R holds up to display size, so the render scale can change without
+        # recreating it.
+        self.ring_r = create_render_ring(self.ring_r_name, display, slots=c.slots)
+        self.ring_u = create_display_ring(self.ring_u_name, display, slots=c.slots)
+        self.worker = self._spawn_worker()
+        game_args = [
+            "game", "--ring", self.ring_r_name, "--scene", c.scene, "--size", c.render_size,
+            "--scale", f"{c.scale:.6g}", "--fps", f"{c.fps:g}", "--seed", str(c.seed),
+            "--threads", str(c.game_threads), "--input", str(self.input_path),
+        ]  # fmt: skip
+        if self._game_duration_s is not None:
+            game_args += ["--duration", f"{self._game_duration_s:g}"]
+        self.game = subprocess.Popen(_cli(*game_args))
+        log.info("session %s: game pid %d, worker pid %d", c.name, self.game.pid, self.worker.pid)
+
+    def _spawn_worker(self) -> subprocess.Popen[bytes]:
+        c = self.config
+        return subprocess.Popen(
+            _cli(
+                "worker",
+                "--ring-in",
+                self.ring_r_name,
+                "--ring-out",
+                self.ring_u_name,
+                "--upscaler",
+                c.upscaler,
+                "--display-size",
+                c.display_size,
+                "--control",
+                str(self.control_path),
+                "--threads",
+                str(c.worker_threads),
+            )
+        )
+
+    def wait_ready(self, timeout_s: float = 60.0) -> None:
+        """Block until the worker's control socket exists (the worker has attached)."""
+        deadline = time.monotonic() + timeout_s
+        while not self.control_path.exists():
+            self.check_children()
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"worker did not come up in {timeout_s:.0f}s")
+            time.sleep(0.05)
+
+    def check_children(self) -> None:
+        """Restart a dead worker; raise if the game died."""
+        if self.worker is not None and self.worker.poll() is not None:
+            code = self.worker.returncode
+            self.worker_restarts += 1
+            log.warning(
+                "worker exited (code %s); restarting (restart #%d)", code, self.worker_restarts
+            )
+            self.control_path.unlink(missing_ok=True)
+            self.worker = self._spawn_worker()
+        if self.game is not None and self.game.poll() not in (None, 0):
+            raise RuntimeError(f"game process exited with code {self.game.returncode}")
+
+    def stop(self) -> None:
+        for proc in (self.game, self.worker):
+            if proc is not None and proc.poll() is None:
+                proc.terminate()
+        for proc in (self.game, self.worker):
+            if proc is None:
+                continue
+            try:
+                proc.wait(10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait(5)
+        for ring in (self.ring_r, self.ring_u):
+            if ring is not None:
+                ring.unlink()
+                ring.close()
+        self.ring_r = self.ring_u = None
+        self.control_path.unlink(missing_ok=True)
+        self.input_path.unlink(missing_ok=True)
+
+    def __enter__(self) -> LocalStack:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
