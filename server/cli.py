@@ -13,6 +13,7 @@ from collections.abc import Callable, Sequence
 COMMANDS: dict[str, tuple[str, str]] = {
     "render": ("render", "render a scene to PNG and .npz files for a person to look at"),
     "bench": ("bench", "benchmarks that write the JSON report of DESIGN.md"),
+    "eval": ("eval", "quality evaluations: speed against error, tables and plots"),
     "worker": ("worker", "run the upscaler worker on existing rings (normally started for you)"),
     "game": ("game", "run the reference game into ring R (normally started for you)"),
     "up": ("up", "start game, upscaler worker and a preview page; print where to watch"),

@@ -1,0 +1,245 @@
+"""``upcast eval upscalers``: every method's speed against its error, per scene and scale.
+
+For each scene the game renders a run of frames at each scale's render size
+(jittered, as a game feeding a temporal upscaler would) and the ground truth
+at display size (unjittered, supersampled) for the measured frames. Methods
+run interleaved frame by frame in one process, each through its own
+UpscalerHost (the worker's code path), so timings compare like with like and
+temporal methods see the frames in order. Quality is measured on the frames
+after a warm-up that lets temporal history build up; FLIP, which costs seconds
+per frame on a CPU, is computed on the last ``--flip-frames`` of them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import torch
+
+from server.bench.report import BenchReport, summarize_ms
+from server.frame import RenderFrame, Size
+from server.render.renderer import Renderer, RenderTargets
+from server.render.scenes import SCENE_NAMES, make_scene
+from upscalers import metrics, registry
+from upscalers.host import UpscalerHost
+from upscalers.output import to_uint8
+
+DEFAULT_METHODS = ("bilinear", "bicubic", "lanczos2", "easu", "easu_rcas", "temporal")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--json", type=Path, required=True, help="JSON report path")
+    parser.add_argument("--plot", type=Path, default=None, help="speed-against-error PNG")
+    parser.add_argument("--table", type=Path, default=None, help="Markdown table path")
+    parser.add_argument("--scenes", default=",".join(SCENE_NAMES), help="comma-separated")
+    parser.add_argument("--scales", default="1.5,2,3", help="display/render, comma-separated")
+    parser.add_argument("--methods", default=",".join(DEFAULT_METHODS), help="comma-separated")
+    parser.add_argument("--display-size", default="1280x720")
+    parser.add_argument("--frames", type=int, default=24, help="frames rendered per scene")
+    parser.add_argument("--measure-from", type=int, default=12, help="first measured frame")
+    parser.add_argument("--flip-frames", type=int, default=2, help="measured frames with FLIP")
+    parser.add_argument("--fps", type=float, default=60.0, help="game time step")
+    parser.add_argument("--supersample", type=int, default=3, help="ground truth ss x ss")
+    parser.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+
+
+@dataclass
+class CaseResult:
+    times_ms: list[float] = field(default_factory=list)
+    psnr: list[float] = field(default_factory=list)
+    ssim: list[float] = field(default_factory=list)
+    flip: list[float] = field(default_factory=list)
+    errors: list[npt.NDArray[np.float32]] = field(default_factory=list)
+
+
+def _csv(text: str) -> list[str]:
+    return [p.strip() for p in text.split(",") if p.strip()]
+
+
+def _parse(args: argparse.Namespace) -> tuple[list[str], list[float], list[str], Size]:
+    scenes = _csv(args.scenes)
+    unknown = [s for s in scenes if s not in SCENE_NAMES]
+    if unknown:
+        raise SystemExit(f"unknown scene(s) {unknown}; allowed: {', '.join(SCENE_NAMES)}")
+    methods = _csv(args.methods)
+    missing = [m for m in methods if m not in registry.available()]
+    if missing:
+        raise SystemExit(f"unknown method(s) {missing}; allowed: {', '.join(registry.available())}")
+    scales = [float(s) for s in _csv(args.scales)]
+    if any(not 1.0 <= s <= 4.0 for s in scales):
+        raise SystemExit(f"scales must be in [1, 4], got {scales}")
+    if not 0 <= args.measure_from < args.frames:
+        raise SystemExit("--measure-from must be below --frames")
+    return scenes, scales, methods, Size.parse(args.display_size)
+
+
+def _start_time(scene: str, measure_from: int, fps: float) -> float:
+    """Game time of frame 0: a scene with a hard cut starts so that the cut falls
+    right before the first measured frame (what matters there is the recovery)."""
+    cuts = make_scene(scene).cut_times
+    return max(0.0, cuts[0] - (measure_from - 0.5) / fps) if cuts else 0.0
+
+
+def _render_frames(scene: str, render: Size, scale: float, times: list[float]) -> list[RenderFrame]:
+    renderer = Renderer(scene, render, scale=scale)
+    return [renderer.render(i, t, RenderTargets.allocate(render)) for i, t in enumerate(times)]
+
+
+def _evaluate_scale(
+    frames: list[RenderFrame],
+    truth: dict[int, npt.NDArray[np.uint8]],
+    methods: list[str],
+    display: Size,
+    flip_from: int,
+) -> dict[str, CaseResult]:
+    hosts = {m: UpscalerHost(m, display) for m in methods}
+    results = {m: CaseResult() for m in methods}
+    for i, frame in enumerate(frames):
+        # Rotate the order each frame so no method always runs with warm or cold caches.
+        order = methods[i % len(methods) :] + methods[: i % len(methods)]
+        for m in order:
+            t0 = time.perf_counter_ns()
+            image = to_uint8(hosts[m].upscale(frame))
+            results[m].times_ms.append((time.perf_counter_ns() - t0) / 1e6)
+            gt = truth.get(i)
+            if gt is None:
+                continue
+            r = results[m]
+            r.psnr.append(metrics.psnr(gt, image))
+            r.ssim.append(metrics.ssim(gt, image))
+            r.errors.append(metrics.signed_error(gt, image))
+            if i >= flip_from:
+                r.flip.append(metrics.flip(gt, image))
+    return results
+
+
+def _mean(values: list[float]) -> float | None:
+    return float(np.mean(values)) if values else None
+
+
+def run(args: argparse.Namespace) -> int:
+    scenes, scales, methods, display = _parse(args)
+    torch.set_num_threads(args.threads)
+    report = BenchReport(
+        "eval_upscalers",
+        {
+            "scenes": scenes,
+            "scales": scales,
+            "methods": methods,
+            "display_size": str(display),
+            "frames": args.frames,
+            "measure_from": args.measure_from,
+            "flip_frames": args.flip_frames,
+            "fps": args.fps,
+            "reference": f"game ground truth at {display}, unjittered, "
+            f"{args.supersample}x{args.supersample} supersampled",
+            "threads": args.threads,
+        },
+    )
+    measured = list(range(args.measure_from, args.frames))
+    flip_from = args.frames - min(args.flip_frames, len(measured))
+    started = time.monotonic()
+    total_steps = len(scenes) * len(scales)
+    step = 0
+    for scene in scenes:
+        start = _start_time(scene, args.measure_from, args.fps)
+        times = [start + i / args.fps for i in range(args.frames)]
+        gt_renderer = Renderer(scene, display, jitter=False)
+        truth = {
+            i: gt_renderer.render_ground_truth(times[i], display, args.supersample)
+            for i in measured
+        }
+        for scale in scales:
+            step += 1
+            render = Size(round(display.width / scale), round(display.height / scale))
+            frames = _render_frames(scene, render, scale, times)
+            results = _evaluate_scale(frames, truth, methods, display, flip_from)
+            for m, r in results.items():
+                t = summarize_ms(r.times_ms[1:])  # the first call includes allocation
+                report.add_case(
+                    f"{scene}/{scale:g}x/{m}",
+                    scene=scene,
+                    scale=scale,
+                    method=m,
+                    render_size=str(render),
+                    median_ms=t["median_ms"],
+                    p95_ms=t["p95_ms"],
+                    psnr_db=_mean(r.psnr),
+                    ssim=_mean(r.ssim),
+                    flip=_mean(r.flip),
+                    flicker=metrics.flicker(r.errors),
+                    worst_psnr_db=min(r.psnr) if r.psnr else None,
+                )
+            elapsed = time.monotonic() - started
+            eta = elapsed / step * (total_steps - step)
+            print(
+                f"[{step}/{total_steps}] {scene} {scale:g}x done "
+                f"({elapsed:.0f} s elapsed, ~{eta:.0f} s left)",
+                file=sys.stderr,
+            )
+    checks = must_show_checks(report.cases)
+    report.notes.extend(f"{'PASS' if ok else 'FAIL'}: {text}" for text, ok in checks)
+    report.write(args.json)
+    from server.eval.table import markdown_table
+
+    table = markdown_table(report.cases, checks)
+    print(table)
+    if args.table:
+        args.table.parent.mkdir(parents=True, exist_ok=True)
+        args.table.write_text(table + "\n")
+    if args.plot:
+        from server.eval.plot import speed_error_plot
+
+        speed_error_plot(report.cases, args.plot, title=f"upscalers to {display}, CPU")
+        print(f"plot written to {args.plot}")
+    print(f"report written to {args.json}")
+    return 0
+
+
+def _case(cases: list[dict[str, Any]], scene: str, scale: float, method: str) -> dict[str, Any]:
+    for c in cases:
+        if c["scene"] == scene and c["scale"] == scale and c["method"] == method:
+            return c
+    raise KeyError((scene, scale, method))
+
+
+def must_show_checks(cases: list[dict[str, Any]]) -> list[tuple[str, bool]]:
+    """The issue's acceptance statements, evaluated on whatever the run covered."""
+    checks: list[tuple[str, bool]] = []
+    have = {(c["scene"], c["scale"], c["method"]) for c in cases}
+    scenes = sorted({c["scene"] for c in cases})
+
+    def ok(scene: str, scale: float, *methods: str) -> bool:
+        return all((scene, scale, m) in have for m in methods)
+
+    for scene in scenes:
+        if ok(scene, 2.0, "easu_rcas", "bicubic"):
+            e, b = _case(cases, scene, 2.0, "easu_rcas"), _case(cases, scene, 2.0, "bicubic")
+            better = e["psnr_db"] > b["psnr_db"] and (
+                e["flip"] is None or b["flip"] is None or e["flip"] < b["flip"]
+            )
+            checks.append((f"{scene} 2x: easu_rcas PSNR and FLIP better than bicubic", better))
+    for scene in scenes:
+        if not ok(scene, 2.0, "temporal", "easu_rcas"):
+            continue
+        t, e = _case(cases, scene, 2.0, "temporal"), _case(cases, scene, 2.0, "easu_rcas")
+        if scene in ("static", "slow_pan"):
+            checks.append(
+                (f"{scene} 2x: temporal >= easu_rcas + 1.5 dB", t["psnr_db"] >= e["psnr_db"] + 1.5)
+            )
+        checks.append(
+            (f"{scene} 2x: temporal flickers less than easu_rcas", t["flicker"] < e["flicker"])
+        )
+        if scene in ("scene_cut", "fast_yaw") and ok(scene, 2.0, "bilinear"):
+            b = _case(cases, scene, 2.0, "bilinear")
+            checks.append(
+                (f"{scene} 2x: temporal PSNR not below bilinear", t["psnr_db"] >= b["psnr_db"])
+            )
+    return checks

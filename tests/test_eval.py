@@ -1,0 +1,100 @@
+"""Quality metrics and the upscaler evaluation command."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from server.cli import main
+from server.eval.upscalers import must_show_checks
+from upscalers import metrics
+
+
+def _img(seed: int, shape: tuple[int, int] = (32, 48)) -> np.ndarray:
+    return np.random.default_rng(seed).integers(0, 256, (*shape, 3), dtype=np.uint8)
+
+
+def test_psnr_known_values() -> None:
+    a = np.zeros((8, 8, 3), np.uint8)
+    assert metrics.psnr(a, a) == float("inf")
+    b = a.copy()
+    b[...] = 10  # mse 100 -> 10 log10(65025 / 100)
+    assert metrics.psnr(a, b) == pytest.approx(28.1308, abs=1e-3)
+
+
+def test_ssim_bounds_and_order() -> None:
+    a = _img(0)
+    assert metrics.ssim(a, a) == pytest.approx(1.0)
+    noisy = np.clip(a.astype(int) + np.random.default_rng(1).integers(-20, 21, a.shape), 0, 255)
+    very = np.clip(a.astype(int) + np.random.default_rng(1).integers(-80, 81, a.shape), 0, 255)
+    s1 = metrics.ssim(a, noisy.astype(np.uint8))
+    s2 = metrics.ssim(a, very.astype(np.uint8))
+    assert 1.0 > s1 > s2
+
+
+def test_flip_zero_for_identical_and_validates() -> None:
+    a = _img(2)
+    assert metrics.flip(a, a) == pytest.approx(0.0, abs=1e-6)
+    assert metrics.flip(a, _img(3)) > 0.1
+    with pytest.raises(ValueError, match=r"both"):
+        metrics.flip(a, a[:10])
+    with pytest.raises(ValueError, match="at least"):
+        metrics.flip(a[:4, :4], a[:4, :4])
+
+
+def test_flicker_ignores_constant_error_and_sees_changing_error() -> None:
+    ref = _img(4)
+    steady = [metrics.signed_error(ref, np.clip(ref.astype(int) + 5, 0, 255).astype(np.uint8))] * 4
+    assert metrics.flicker(steady) == 0.0
+    changing = [metrics.signed_error(ref, _img(10 + i)) for i in range(4)]
+    assert metrics.flicker(changing) > 0.1
+    assert np.isnan(metrics.flicker(steady[:1]))
+
+
+def _case(scene: str, method: str, psnr: float, flip: float, flicker: float) -> dict[str, object]:
+    return {"scene": scene, "scale": 2.0, "method": method, "psnr_db": psnr, "flip": flip,
+            "flicker": flicker}  # fmt: skip
+
+
+def test_must_show_checks_evaluate_the_statements() -> None:
+    cases = [
+        _case("static", "bicubic", 30.0, 0.10, 0.02),
+        _case("static", "easu_rcas", 30.5, 0.09, 0.02),
+        _case("static", "temporal", 32.1, 0.07, 0.01),
+        _case("fast_yaw", "bilinear", 25.0, 0.2, 0.05),
+        _case("fast_yaw", "bicubic", 25.2, 0.2, 0.05),
+        _case("fast_yaw", "easu_rcas", 25.1, 0.21, 0.05),
+        _case("fast_yaw", "temporal", 24.0, 0.2, 0.04),
+    ]
+    results = dict(must_show_checks(cases))  # type: ignore[arg-type]
+    assert results["static 2x: easu_rcas PSNR and FLIP better than bicubic"]
+    assert not results["fast_yaw 2x: easu_rcas PSNR and FLIP better than bicubic"]
+    assert results["static 2x: temporal >= easu_rcas + 1.5 dB"]
+    assert not results["fast_yaw 2x: temporal PSNR not below bilinear"]
+
+
+def test_eval_command_writes_report_table_and_plot(tmp_path: Path) -> None:
+    out = tmp_path / "eval.json"
+    code = main(
+        ["eval", "upscalers", "--json", str(out), "--plot", str(tmp_path / "p.png"),
+         "--table", str(tmp_path / "t.md"), "--scenes", "static,scene_cut", "--scales", "2",
+         "--methods", "bilinear,bicubic", "--frames", "5", "--measure-from", "3",
+         "--flip-frames", "1", "--display-size", "192x108", "--supersample", "2"]
+    )  # fmt: skip
+    assert code == 0
+    report = json.loads(out.read_text())
+    assert report["machine"]["cpu_count"] >= 1
+    assert {c["method"] for c in report["cases"]} == {"bilinear", "bicubic"}
+    for case in report["cases"]:
+        assert case["median_ms"] > 0 and case["p95_ms"] >= case["median_ms"]
+        assert 10 < case["psnr_db"] < 60 and 0 < case["ssim"] <= 1 and 0 <= case["flip"] < 1
+    assert (tmp_path / "p.png").read_bytes()[:4] == b"\x89PNG"
+    assert "| bilinear |" in (tmp_path / "t.md").read_text()
+
+
+def test_eval_refuses_unknown_names(tmp_path: Path) -> None:
+    with pytest.raises(SystemExit, match="allowed"):
+        main(["eval", "upscalers", "--json", str(tmp_path / "x.json"), "--methods", "magic"])
