@@ -97,6 +97,8 @@ class LocalStack:
         self.game: subprocess.Popen[bytes] | None = None
         self.worker: subprocess.Popen[bytes] | None = None
         self.worker_restarts = 0
+        # The method the worker runs now; a restarted worker starts with it.
+        self.upscaler = config.upscaler
 
     def start(self) -> None:
         c = self.config
@@ -135,6 +137,10 @@ class LocalStack:
                 str(c.worker_threads),
             )
         )
+
+    def remember_upscaler(self, name: str) -> None:
+        """Record a run-time switch the worker accepted (see server/control.py)."""
+        self.upscaler = name
 
     def wait_ready(self, timeout_s: float = 60.0) -> None:
         """Block until the worker's control socket exists (the worker has attached)."""
