@@ -42,7 +42,10 @@ class SessionConfig(BaseModel):
     game_threads: int = Field(default=1, ge=1, description="torch threads in the game")
     worker_threads: int = Field(default=1, ge=1, description="torch threads in the worker")
     slots: int = Field(default=3, ge=2, le=16, description="slots per ring")
-    name: str = Field(default_factory=lambda: f"upcast-{os.getpid()}-{uuid.uuid4().hex[:6]}")
+    name: str = Field(
+        default_factory=lambda: f"upcast-{os.getpid()}-{uuid.uuid4().hex[:6]}",
+        description="session name: prefix of its rings and sockets",
+    )
 
     @field_validator("render_size", "display_size")
     @classmethod

@@ -1,0 +1,40 @@
+"""Markdown reference of the pydantic configuration models, for the README.
+
+``python -m server.config_doc`` prints it; a test keeps README.md in step.
+"""
+
+from __future__ import annotations
+
+from pydantic import BaseModel
+from pydantic_core import PydanticUndefined
+
+from server.stack import SessionConfig
+from server.worker import WorkerConfig
+
+DOCUMENTED: tuple[tuple[str, type[BaseModel]], ...] = (
+    ("upcast up (SessionConfig)", SessionConfig),
+    ("upcast worker (WorkerConfig)", WorkerConfig),
+)
+
+
+def _default(model: type[BaseModel], name: str) -> str:
+    info = model.model_fields[name]
+    if info.default_factory is not None:
+        return "(generated)"
+    if info.default is PydanticUndefined:
+        return "(required)"
+    return f"`{info.default}`"
+
+
+def markdown() -> str:
+    lines: list[str] = []
+    for title, model in DOCUMENTED:
+        lines += [f"**{title}**", "", "| field | default | meaning |", "|---|---|---|"]
+        for name, info in model.model_fields.items():
+            lines.append(f"| `{name}` | {_default(model, name)} | {info.description or ''} |")
+        lines.append("")
+    return "\n".join(lines).rstrip() + "\n"
+
+
+if __name__ == "__main__":
+    print(markdown(), end="")
