@@ -7,7 +7,9 @@ alike, and every term is an affine field of the sample position.
 
 Motion is "previous position minus current position", both computed by the
 same code from the same inputs, so a still camera over a still scene gives
-exactly 0 whatever the jitter, instead of a rounding residue.
+exactly 0 whatever the jitter, instead of a rounding residue. The pixel scale
+(W/2 and -H/2) is folded into the matrices' x and y rows, and the +1 offsets of
+the NDC -> pixel map cancel in the difference.
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from server.render.rays import FrameSetup, ObjectInstance, RayGrid
+from server.render.rays import FrameSetup, RayGrid
 from server.render.transforms import F64Array
 
 # Points behind the previous camera have no meaningful position there; clamp
@@ -23,60 +25,63 @@ from server.render.transforms import F64Array
 MIN_W = 1e-6
 
 
-def depth_from_s(s: torch.Tensor, setup: FrameSetup) -> torch.Tensor:
+def depth_from_s(
+    s: torch.Tensor, setup: FrameSetup, out: torch.Tensor | None = None
+) -> torch.Tensor:
     """NDC z = far/(far-near) (1 - near/t); sky (s = 0) clamps to exactly 1.0."""
     a = setup.far / (setup.far - setup.near)
-    return (a - (a * setup.near) * s).clamp_(0.0, 1.0)
+    res = torch.mul(s, -a * setup.near, out=out) if out is not None else s * (-a * setup.near)
+    return res.add_(a).clamp_(0.0, 1.0)
+
+
+def _pixel_rows(m: F64Array, grid: RayGrid) -> F64Array:
+    """Rows x, y, w of clip matrix ``m`` with x, y scaled to pixel offsets."""
+    return np.stack([m[0] * (0.5 * grid.width), m[1] * (-0.5 * grid.height), m[3]])
 
 
 def _project_field(
     m: F64Array, grid: RayGrid, s: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Pixel position of every sample under clip matrix ``m`` (world -> clip)."""
-    mo = m @ np.append(grid.origin, 1.0)
-    m3 = m[:, :3]
+    """Pixel position (less the constant centre offset) of every sample under ``m``."""
+    rows = _pixel_rows(m, grid)
+    mo = rows @ np.append(grid.origin, 1.0)
+    m3 = rows[:, :3]
     c0, cx, cy = m3 @ grid.c0, m3 @ grid.cx, m3 @ grid.cy
 
     def comp(i: int) -> torch.Tensor:
         f = grid.field((float(c0[i]), float(cx[i]), float(cy[i])), grid.xs, grid.ys)
-        return s * float(mo[i]) + f
+        return f.add_(s, alpha=float(mo[i]))
 
-    w = comp(3).clamp_min_(MIN_W)
-    inv_w = w.reciprocal_()
-    px = (comp(0) * inv_w + 1.0) * (0.5 * grid.width)
-    py = (1.0 - comp(1) * inv_w) * (0.5 * grid.height)
-    return px, py
+    inv_w = comp(2).clamp_min_(MIN_W).reciprocal_()
+    return comp(0).mul_(inv_w), comp(1).mul_(inv_w)
 
 
-def static_motion(setup: FrameSetup, grid: RayGrid, s: torch.Tensor) -> torch.Tensor:
-    """(rows, width, 2) motion of a static world under the camera change."""
+def static_motion(
+    setup: FrameSetup, grid: RayGrid, s: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(rows, width) x and y motion of a static world under the camera change."""
     px0, py0 = _project_field(setup.prev_view_proj, grid, s)
     px1, py1 = _project_field(setup.view_proj, grid, s)
-    return torch.stack([px0 - px1, py0 - py1], dim=-1)
+    return px0.sub_(px1), py0.sub_(py1)
 
 
 def _project_points(
-    m: F64Array, p: torch.Tensor, grid: RayGrid
+    m: F64Array, q: torch.Tensor, grid: RayGrid
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    mt = torch.as_tensor(m, dtype=torch.float32, device=p.device)
-    clip = p @ mt[:, :3].T + mt[:, 3]
-    inv_w = clip[:, 3].clamp_min(MIN_W).reciprocal()
-    px = (clip[:, 0] * inv_w + 1.0) * (0.5 * grid.width)
-    py = (1.0 - clip[:, 1] * inv_w) * (0.5 * grid.height)
-    return px, py
+    rows = torch.as_tensor(_pixel_rows(m, grid), dtype=torch.float32, device=q.device)
+    clip = rows[:, :3] @ q + rows[:, 3:]
+    inv_w = clip[2].clamp_min(MIN_W).reciprocal_()
+    return clip[0] * inv_w, clip[1] * inv_w
 
 
 def object_motion(
-    setup: FrameSetup, grid: RayGrid, inst: ObjectInstance, flat: torch.Tensor, t: torch.Tensor
-) -> torch.Tensor:
-    """(n, 2) motion of a moving object's pixels: local point, previous pose, previous camera."""
-    rows = torch.div(flat, grid.width, rounding_mode="floor")
-    cols = flat - rows * grid.width
-    xs, ys = grid.xs[cols], grid.ys[rows]
-    d = [float(grid.c0[i]) + xs * float(grid.cx[i]) + ys * float(grid.cy[i]) for i in range(3)]
-    p = torch.stack([float(grid.origin[i]) + t * d[i] for i in range(3)], dim=1)
-    # World now -> object local -> world at the previous frame -> previous clip.
-    prev = setup.prev_view_proj @ inst.prev_world @ inst.local
-    px0, py0 = _project_points(prev, p, grid)
-    px1, py1 = _project_points(setup.view_proj, p, grid)
-    return torch.stack([px0 - px1, py0 - py1], dim=1)
+    setup: FrameSetup,
+    grid: RayGrid,
+    world: F64Array,
+    prev_world: F64Array,
+    q: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """x and y motion of a moving object's pixels from their (3, n) local hit points."""
+    px0, py0 = _project_points(setup.prev_view_proj @ prev_world, q, grid)
+    px1, py1 = _project_points(setup.view_proj @ world, q, grid)
+    return px0.sub_(px1), py0.sub_(py1)

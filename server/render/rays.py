@@ -88,6 +88,13 @@ class RayGrid:
         a0, ax, ay = coef
         return (ys * ay + a0)[:, None] + (xs * ax)[None, :]
 
+    def norm2_terms(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """|d|^2 = row[:, None] + col[None, :]: cx and cy are orthogonal, so no xy term."""
+        c0, cx, cy = self.c0, self.cx, self.cy
+        col = self.xs * (self.xs * float(cx @ cx) + 2.0 * float(c0 @ cx))
+        row = self.ys * (self.ys * float(cy @ cy) + 2.0 * float(c0 @ cy)) + float(c0 @ c0)
+        return row, col
+
     def direction_coefs(self, rotation: F64Array) -> list[tuple[float, float, float]]:
         """Per-component (a0, ax, ay) of ``rotation @ d`` (rotation: world -> some frame)."""
         c0, cx, cy = rotation @ self.c0, rotation @ self.cx, rotation @ self.cy
@@ -116,33 +123,59 @@ def make_grid(
     return RayGrid(width, height, y0, y1, xs, ys, setup.origin, c0, cx, cy)
 
 
-def screen_rect(
-    setup: FrameSetup, inst: ObjectInstance, grid: RayGrid
-) -> tuple[int, int, int, int] | None:
-    """Band-relative (row0, row1, col0, col1) that can see the object, None if none.
+# The 12 edges of a box, as pairs of indices into its 8 corners (bit i = axis i at max).
+_EDGES = np.array([(a, a | (1 << k)) for a in range(8) for k in range(3) if not a & (1 << k)])
 
-    Projects the 8 corners of its bounding box; a corner at or behind the near
-    plane makes the projection meaningless, so the whole band is used then.
+
+def screen_rects(
+    setup: FrameSetup, insts: list[ObjectInstance], grid: RayGrid
+) -> list[tuple[int, int, int, int] | None]:
+    """Band-relative (row0, row1, col0, col1) per bounded object that can see it, None if none.
+
+    Projects the bounding box clipped to the near plane (its corners in front
+    plus where its edges cross the plane), so a box partly behind the camera
+    still gets a tight rectangle and one wholly behind it none. All objects in
+    one vectorized pass.
     """
-    full = (0, grid.rows, 0, grid.width)
-    bounds = inst.obj.local_bounds()
-    if bounds is None:
-        return full
-    lo, hi = bounds
-    corners = np.array(
-        [[x, y, z, 1.0] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
-    )
-    clip = corners @ (setup.view_proj @ inst.world).T
-    w = clip[:, 3]
-    if np.any(w <= setup.near * 0.999):
-        return full
-    px = (clip[:, 0] / w + 1.0) * 0.5 * grid.width
-    py = (1.0 - clip[:, 1] / w) * 0.5 * grid.height
-    # Samples of pixel i lie in [i, i + 1) whatever the jitter: a 2-pixel margin is safe.
-    c0 = max(0, math.floor(px.min()) - 2)
-    c1 = min(grid.width, math.ceil(px.max()) + 2)
-    r0 = max(grid.y0, math.floor(py.min()) - 2) - grid.y0
-    r1 = min(grid.y1, math.ceil(py.max()) + 2) - grid.y0
-    if c0 >= c1 or r0 >= r1:
-        return None
-    return r0, r1, c0, c1
+    if not insts:
+        return []
+    lo = np.empty((len(insts), 3))
+    hi = np.empty((len(insts), 3))
+    for k, inst in enumerate(insts):
+        bounds = inst.obj.local_bounds()
+        assert bounds is not None
+        lo[k], hi[k] = bounds
+    bits = (np.arange(8)[:, None] >> np.arange(3)[None, :]) & 1  # (8, 3)
+    corners = np.where(bits[None], hi[:, None, :], lo[:, None, :])  # (K, 8, 3)
+    mats = np.stack([setup.view_proj @ inst.world for inst in insts])  # (K, 4, 4)
+    clip = np.einsum("kij,kcj->kci", mats[:, :, :3], corners) + mats[:, None, :, 3]
+    # Hits have view depth t >= near; clip slightly in front of it to stay conservative.
+    plane = setup.near * 0.999
+    a, b = clip[:, _EDGES[:, 0]], clip[:, _EDGES[:, 1]]  # (K, 12, 4)
+    wa, wb = a[..., 3] - plane, b[..., 3] - plane
+    crosses = wa * wb < 0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        f = np.where(crosses, wa / (wa - wb), 0.0)
+    cut = a + (b - a) * f[..., None]
+    pts = np.concatenate([clip, cut], axis=1)  # (K, 20, 4)
+    ok = np.concatenate([clip[..., 3] >= plane, crosses], axis=1)
+    w = np.where(ok, pts[..., 3], 1.0)
+    px = (pts[..., 0] / w + 1.0) * 0.5 * grid.width
+    py = (1.0 - pts[..., 1] / w) * 0.5 * grid.height
+    inf = np.inf
+    x_lo = np.where(ok, px, inf).min(axis=1)
+    x_hi = np.where(ok, px, -inf).max(axis=1)
+    y_lo = np.where(ok, py, inf).min(axis=1)
+    y_hi = np.where(ok, py, -inf).max(axis=1)
+    out: list[tuple[int, int, int, int] | None] = []
+    for k in range(len(insts)):
+        if not ok[k].any():
+            out.append(None)
+            continue
+        # Samples of pixel i lie in [i, i + 1) whatever the jitter: a 2-pixel margin is safe.
+        c0 = max(0, math.floor(x_lo[k]) - 2)
+        c1 = min(grid.width, math.ceil(x_hi[k]) + 2)
+        r0 = max(grid.y0, math.floor(y_lo[k]) - 2) - grid.y0
+        r1 = min(grid.y1, math.ceil(y_hi[k]) + 2) - grid.y0
+        out.append(None if c0 >= c1 or r0 >= r1 else (r0, r1, c0, c1))
+    return out

@@ -21,8 +21,15 @@ from server.render.motion import depth_from_s, object_motion, static_motion
 from server.render.rays import FrameSetup, ObjectInstance, RayGrid, make_grid
 from server.render.scene import Scene
 from server.render.scenes import make_scene
-from server.render.shading import linear_to_srgb, quantize_into, shade, sky
-from server.render.surfaces import MaterialEntry, Surface, material_entry, surface_of
+from server.render.shading import encode_srgb_into, shade, shade_ground, sky_into
+from server.render.surfaces import (
+    MaterialEntry,
+    S,
+    ground_surface,
+    material_entry,
+    object_surface,
+    sun_direction,
+)
 from server.render.textures import TextureAtlas, texture_atlas
 from server.render.transforms import jitter_offset, jitter_phase_count, perspective
 
@@ -67,10 +74,18 @@ class RenderTargets:
 
 @dataclass
 class _Band:
-    color: torch.Tensor  # (rows, W, 3) linear
-    depth: torch.Tensor | None = None
-    motion: torch.Tensor | None = None
+    color: torch.Tensor  # (3, rows, W) linear planes
+    s: torch.Tensor | None = None  # (rows, W) inverse view depth, 0 = sky
+    motion: tuple[torch.Tensor, torch.Tensor] | None = None  # x, y planes
     mask: torch.Tensor | None = None
+
+
+def _row_span(rows: torch.Tensor) -> tuple[int, int]:
+    """[first, last + 1) of the True entries of a (rows,) bool tensor, (0, 0) if none."""
+    idx = rows.nonzero()
+    if idx.numel() == 0:
+        return 0, 0
+    return int(idx[0, 0]), int(idx[-1, 0]) + 1
 
 
 class Renderer:
@@ -144,51 +159,85 @@ class Renderer:
             tuple(instances),
         )
 
-    def _trace(self, setup: FrameSetup, grid: RayGrid, gbuffers: bool) -> _Band:
-        """Colour (and optionally depth, motion, mask) of one band of rays."""
+    def _trace(self, setup: FrameSetup, grid: RayGrid, gbuffers: bool, motion: bool) -> _Band:
+        """Colour (and optionally s, motion, mask) of one band of rays."""
+        lighting = self.scene.lighting
+        sun = sun_direction(lighting)
         dp = depth_pass(setup, grid)
-        color = sky(grid, self.scene.lighting)
-        parts: list[Surface] = []
-        moving: list[tuple[ObjectInstance, Surface]] = []
-        for inst in setup.instances:
-            surf = surface_of(inst, self.entries, setup, grid, dp)
-            if surf is None:
+        s = dp.s
+        color = torch.empty(3, grid.rows, grid.width, device=grid.xs.device)
+        multi = len(dp.grounds) > 1
+        if multi:
+            color.zero_()
+        a0, a1 = _row_span(s.amin(dim=1) <= 0.0)
+        if a1 > a0:
+            sky_into(color[:, a0:a1], grid, lighting, a0, a1)
+        for g in dp.grounds:
+            b0, b1 = _row_span(g.s.amax(dim=1) > 0.0)
+            if b1 <= b0:
                 continue
-            parts.append(surf)
-            if inst.obj.moving:
-                moving.append((inst, surf))
-        if parts:
-            hits = Surface.cat(parts)
-            shaded = shade(self.atlas, hits, self.scene.lighting, setup.far)
-            color.view(-1, 3).index_copy_(0, hits.flat, shaded)
+            surf = ground_surface(g, self.entries, setup, grid, (b0, b1), sun)
+            planes = shade_ground(self.atlas, surf, lighting, setup.far)
+            # Rows that may hold other pixels (sky, another ground) blend by coverage.
+            c0, c1 = (b0, b1) if multi else (max(a0, b0), min(a1, b1))
+            mask = torch.gt(g.s[c0:c1], 0.0).float() if c1 > c0 else None
+            for ch, plane in enumerate(planes):
+                dst = color[ch, b0:b1]
+                if mask is None:
+                    dst.copy_(plane)
+                    continue
+                if not multi:
+                    dst[: c0 - b0].copy_(plane[: c0 - b0])
+                    dst[c1 - b0 :].copy_(plane[c1 - b0 :])
+                part = dst[c0 - b0 : c1 - b0]
+                part.lerp_(plane[c0 - b0 : c1 - b0], mask)
+        surfs: list[torch.Tensor] = []
+        pix: list[torch.Tensor] = []
+        moving = []
+        for hits in dp.classes:
+            rows, q = object_surface(hits, self.entries, grid, sun)
+            surfs.append(rows)
+            pix.append(hits.pix)
+            moving += [(hits, k, inst, q) for k, inst in enumerate(hits.insts) if inst.obj.moving]
+        if surfs:
+            surf_all = surfs[0] if len(surfs) == 1 else torch.cat(surfs, dim=1)
+            pix_all = pix[0] if len(pix) == 1 else torch.cat(pix)
+            planes = shade(self.atlas, surf_all, lighting, setup.far, surf_all[S])
+            for ch, plane in enumerate(planes):
+                color[ch].view(-1).index_copy_(0, pix_all, plane)
         band = _Band(color)
         if not gbuffers:
             return band
-        s = dp.t.reciprocal()
-        s.masked_fill_(dp.ids < 0, 0.0)  # sky: a point at infinity
-        band.depth = depth_from_s(s, setup)
-        band.motion = static_motion(setup, grid, s)
+        band.s = s
         band.mask = torch.zeros(grid.rows, grid.width, dtype=torch.uint8, device=grid.xs.device)
-        for inst, surf in moving:
-            band.mask.view(-1).index_fill_(0, surf.flat, 1)
-            mv = object_motion(setup, grid, inst, surf.flat, surf.t)
-            band.motion.view(-1, 2).index_copy_(0, surf.flat, mv)
+        if motion:
+            band.motion = static_motion(setup, grid, s)
+        for hits, k, inst, q in moving:
+            sel = (hits.oid == k).nonzero().view(-1)
+            if sel.numel() == 0:
+                continue
+            p = hits.pix.index_select(0, sel)
+            band.mask.view(-1).index_fill_(0, p, 1)
+            if band.motion is not None:
+                mv = object_motion(setup, grid, inst.world, inst.prev_world, q.index_select(1, sel))
+                for plane, vals in zip(band.motion, mv, strict=True):
+                    plane.view(-1).index_copy_(0, p, vals)
         return band
 
     def _linear_color(
         self, setup: FrameSetup, size: Size, jitter: tuple[float, float], ss: int
     ) -> torch.Tensor:
-        """(H, W, 3) linear colour averaged over an ss x ss grid of subsamples per pixel."""
+        """(3, H, W) linear colour averaged over an ss x ss grid of subsamples per pixel."""
         w, h = size.width * ss, size.height * ss
-        out = torch.empty(size.height, size.width, 3, device=self.device)
+        out = torch.empty(3, size.height, size.width, device=self.device)
         band_rows = max(ss, (MAX_BAND_PIXELS // w) // ss * ss)
         for y0 in range(0, h, band_rows):
             y1 = min(h, y0 + band_rows)
             grid = make_grid(setup, w, h, (jitter[0] * ss, jitter[1] * ss), y0, y1, self.device)
-            col = self._trace(setup, grid, gbuffers=False).color
+            col = self._trace(setup, grid, gbuffers=False, motion=False).color
             rows = (y1 - y0) // ss
-            pooled = col.view(rows, ss, size.width, ss, 3).mean(dim=(1, 3))
-            out[y0 // ss : y0 // ss + rows] = pooled
+            pooled = col.view(3, rows, ss, size.width, ss).mean(dim=(2, 4))
+            out[:, y0 // ss : y0 // ss + rows] = pooled
         return out
 
     def render(
@@ -217,19 +266,22 @@ class Renderer:
         setup = self._setup(t, prev, size, reset, self._last_input)
         jit = self.jitter_for(frame_index)
         grid = make_grid(setup, size.width, size.height, jit, 0, size.height, self.device)
-        band = self._trace(setup, grid, gbuffers=True)
-        assert band.depth is not None and band.motion is not None and band.mask is not None
+        band = self._trace(setup, grid, gbuffers=True, motion=not reset)
+        assert band.s is not None and band.mask is not None
         color = (
             band.color if supersample <= 1 else self._linear_color(setup, size, jit, supersample)
         )
-        if reset:
-            band.motion.zero_()
-        lim = 4.0 * max(size)
-        motion = torch.nan_to_num(band.motion, nan=0.0, posinf=lim, neginf=-lim).clamp_(-lim, lim)
-        depth = torch.nan_to_num(band.depth, nan=1.0)
-        quantize_into(linear_to_srgb(color), torch.from_numpy(targets.color))
-        torch.from_numpy(targets.depth).copy_(depth)
-        torch.from_numpy(targets.motion).copy_(motion)
+        encode_srgb_into(color, torch.from_numpy(targets.color))
+        depth = torch.from_numpy(targets.depth)
+        depth_from_s(band.s, setup, out=depth).nan_to_num_(nan=1.0)
+        motion = torch.from_numpy(targets.motion)
+        if band.motion is None:  # RESET: no previous frame to move from
+            motion.zero_()
+        else:
+            lim = 4.0 * max(size)
+            for ch, plane in enumerate(band.motion):
+                plane.nan_to_num_(nan=0.0, posinf=lim, neginf=-lim).clamp_(-lim, lim)
+                motion[..., ch].copy_(plane)
         torch.from_numpy(targets.dynamic_mask).copy_(band.mask)
         self._last_t = t
         self._last_input = self.game_camera.state
@@ -252,5 +304,5 @@ class Renderer:
         setup = self._setup(t, t, size, True, self.game_camera.state)
         color = self._linear_color(setup, size, (0.0, 0.0), max(1, supersample))
         out = np.empty((size.height, size.width, 3), np.uint8)
-        quantize_into(linear_to_srgb(color), torch.from_numpy(out))
+        encode_srgb_into(color, torch.from_numpy(out))
         return out

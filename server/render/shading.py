@@ -1,92 +1,157 @@
 """Texture sampling, lighting, sky, fog and the sRGB encode.
 
 Textures are sampled once per hit pixel, after visibility is resolved: bilinear
-within one mip level chosen per pixel (level = round(lod)), four gathers from
-the flat atlas. Cheaper than trilinear and enough to stop distant texture
-shimmer; materials with mip off alias on purpose.
+within one mip level chosen per pixel (level = round(lod)), four gathers per
+channel from the atlas' channel planes. Cheaper than trilinear and enough to
+stop distant texture shimmer; materials with mip off alias on purpose.
+
+Colour is kept as three float32 planes (channel-first) until the final encode:
+per-channel blends of planes are plain elementwise ops, where (n, 3) * (n, 1)
+broadcasts are a slow path on CPU.
 """
 
 from __future__ import annotations
 
+from functools import cache
+
+import numpy as np
 import torch
 
 from server.render.rays import RayGrid
 from server.render.scene import Lighting
-from server.render.surfaces import Surface
-from server.render.textures import LEVELS, PYRAMID_TEXELS, TextureAtlas
+from server.render.surfaces import FOOT, LAM, NY, TEX, TINT, GroundSurface, S, U, V
+from server.render.textures import LEVELS, PYRAMID_TEXELS, SIZE, TextureAtlas
+
+LOG2_SIZE = SIZE.bit_length() - 1
+# The sRGB encode is a table lookup on the linear value quantized to this many steps.
+SRGB_LUT_STEPS = 1 << 14
 
 
-def sample_texture(atlas: TextureAtlas, s: Surface) -> torch.Tensor:
-    """(n, 3) linear albedo: bilinear, repeat wrap, per-pixel mip level."""
-    level = s.lod.round().clamp_(0, LEVELS - 1).long()
-    size = atlas.level_sizes[level]
-    base = s.texture * PYRAMID_TEXELS + atlas.level_offsets[level]
-    x = s.u * size - 0.5
-    y = s.v * size - 0.5
-    x0 = x.floor()
-    y0 = y.floor()
-    fx = (x - x0)[:, None]
-    fy = (y - y0)[:, None]
-    # Wrap with floor-division so negative coordinates repeat too.
-    x0 = x0 - size * (x0 / size).floor()
-    y0 = y0 - size * (y0 / size).floor()
-    x1 = x0 + 1.0
-    x1 = x1 - size * (x1 >= size).float()
-    y1 = y0 + 1.0
-    y1 = y1 - size * (y1 >= size).float()
-    row0 = base + y0 * size
-    row1 = base + y1 * size
-    packed = atlas.packed
-    n = s.u.shape[0]
+def mip_level(foot: torch.Tensor) -> torch.Tensor:
+    """int32 floor(log2(foot)) clamped to the pyramid, from the float's exponent bits.
 
-    def tap(row: torch.Tensor, col: torch.Tensor) -> torch.Tensor:
-        return packed.take((row + col).long()).view(torch.float16).view(n, 4).float()
-
-    # Explicit a + (b - a) w: torch.lerp with a broadcast weight is a slow path.
-    top = tap(row0, x0)
-    top += (tap(row0, x1) - top) * fx
-    bottom = tap(row1, x0)
-    bottom += (tap(row1, x1) - bottom) * fx
-    top += (bottom - top) * fy
-    return top[:, :3]
+    ``foot`` already carries 2^(lod_bias + 0.5), so this is round(lod); 0, NaN
+    and negative values give level 0, inf the last level.
+    """
+    bits = foot.view(torch.int32)
+    level = torch.bitwise_right_shift(bits, 23).sub_(127)
+    # Negative floats have the sign bit set: their shifted exponent is < -127.
+    return level.clamp_(0, LEVELS - 1)
 
 
-def shade(atlas: TextureAtlas, s: Surface, lighting: Lighting, far: float) -> torch.Tensor:
-    """(n, 3) linear colour: Lambert sun + hemisphere ambient, then distance fog."""
-    device = s.t.device
-    albedo = sample_texture(atlas, s) * s.tint
-    sun = torch.tensor(lighting.sun_direction, dtype=torch.float32, device=device)
-    sun = sun / sun.norm()
-    lam = (s.normal @ sun).clamp_min_(0.0)[:, None]
-    up = (0.5 + 0.5 * s.normal[:, 1])[:, None]
-    sky_amb = torch.tensor(lighting.sky_ambient, device=device)
-    ground_amb = torch.tensor(lighting.ground_ambient, device=device)
-    light = (
-        ground_amb
-        + (sky_amb - ground_amb) * up
-        + lam * torch.tensor(lighting.sun_color, device=device)
-    )
-    color = albedo * light
-    # Fog reaches the horizon colour exactly at the far plane, hiding the clip.
-    fog = ((s.t / far).clamp_(0.0, 1.0) ** 2)[:, None]
-    horizon = torch.tensor(lighting.horizon, device=device)
-    color += (horizon - color) * fog
-    out: torch.Tensor = color
+def _pow2(exponent: torch.Tensor) -> torch.Tensor:
+    """2.0 ** exponent (int32, in the normal float range), exactly, as float32."""
+    return torch.bitwise_left_shift(exponent + 127, 23).view(torch.float32)
+
+
+def sample_texture(
+    atlas: TextureAtlas, u: torch.Tensor, v: torch.Tensor, tex: torch.Tensor, foot: torch.Tensor
+) -> list[torch.Tensor]:
+    """Three planes of linear albedo: bilinear, repeat wrap, per-pixel mip level."""
+    shape = u.shape
+    u, v, tex, foot = (a.reshape(-1) for a in (u, v, tex, foot))
+    level = mip_level(foot)
+    size = _pow2(LOG2_SIZE - level)
+    inv_size = _pow2(level - LOG2_SIZE)
+    # Texel offset of level l in a pyramid: sum_{i<l} 4^(9-i) = (4^10 - 4 size^2) / 3.
+    base = size * size
+    base.mul_(-4.0).add_(float(4 * SIZE * SIZE)).div_(3.0).round_()
+    base.addcmul_(tex, torch.full_like(tex, float(PYRAMID_TEXELS)))
+
+    def axis(c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        x = c * size
+        x.sub_(0.5)
+        x0 = x.floor()
+        frac = x.sub_(x0)
+        # Wrap with floor-division so negative coordinates repeat too.
+        x0.addcmul_(size, (x0 * inv_size).floor_(), value=-1.0)
+        x1 = x0 + 1.0
+        x1.addcmul_(size, torch.ge(x1, size).float(), value=-1.0)
+        return x0, x1, frac
+
+    x0, x1, fx = axis(u)
+    y0, y1, fy = axis(v)
+    row0 = torch.addcmul(base, y0, size)
+    row1 = torch.addcmul(base, y1, size)
+    last = atlas.planes.shape[1] - 1
+    taps = [(r + c).to(torch.int32).clamp_(0, last) for r in (row0, row1) for c in (x0, x1)]
+    out = []
+    for plane in atlas.planes:
+        t00, t01, t10, t11 = (plane.index_select(0, i) for i in taps)
+        top = torch.lerp(t00, t01, fx)
+        bottom = torch.lerp(t10, t11, fx)
+        out.append(top.lerp_(bottom, fy).view(shape))
     return out
+
+
+def _light_terms(lighting: Lighting) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per channel: light = a + b * n_y + c * max(n . sun, 0)."""
+    sky_amb = np.asarray(lighting.sky_ambient)
+    ground_amb = np.asarray(lighting.ground_ambient)
+    half = 0.5 * (sky_amb - ground_amb)
+    return ground_amb + half, half, np.asarray(lighting.sun_color)
+
+
+def _fog(s: torch.Tensor, far: float) -> torch.Tensor:
+    """(t / far)^2 clamped to [0, 1], from s = 1 / t (fog reaches the horizon at far)."""
+    fog = (s * far).reciprocal_().clamp_(0.0, 1.0)
+    return fog.mul_(fog)
+
+
+def shade(
+    atlas: TextureAtlas, surf: torch.Tensor, lighting: Lighting, far: float, s: torch.Tensor
+) -> list[torch.Tensor]:
+    """Three planes of linear colour: Lambert sun + hemisphere ambient, then distance fog.
+
+    ``surf`` holds the surface rows of surfaces.py (any trailing shape).
+    """
+    albedo = sample_texture(atlas, surf[U], surf[V], surf[TEX], surf[FOOT])
+    a, b, c = _light_terms(lighting)
+    fog = _fog(s, far)
+    keep = 1.0 - fog
+    out = []
+    for ch in range(3):
+        light = surf[NY] * float(b[ch])
+        light.add_(float(a[ch])).add_(surf[LAM], alpha=float(c[ch]))
+        col = albedo[ch].mul_(surf[TINT + ch]).mul_(light).mul_(keep)
+        out.append(col.add_(fog, alpha=float(lighting.horizon[ch])))
+    return out
+
+
+def shade_ground(
+    atlas: TextureAtlas, g: GroundSurface, lighting: Lighting, far: float
+) -> list[torch.Tensor]:
+    """Like ``shade`` with the ground's constant normal: light is one number per channel."""
+    rows = g.rows
+    albedo = sample_texture(atlas, rows[U], rows[V], rows[TEX], rows[FOOT])
+    a, b, c = _light_terms(lighting)
+    fog = _fog(rows[S].clamp_min(1.0 / far), far)
+    keep = 1.0 - fog
+    out = []
+    for ch in range(3):
+        light = float(a[ch] + b[ch] * g.ny + c[ch] * g.lam)
+        col = albedo[ch].mul_(rows[TINT + ch]).mul_(keep).mul_(light)
+        out.append(col.add_(fog, alpha=float(lighting.horizon[ch])))
+    return out
+
+
+def sky_into(out: torch.Tensor, grid: RayGrid, lighting: Lighting, r0: int, r1: int) -> None:
+    """Linear sky of band rows [r0, r1) into ``out`` (3, r1 - r0, width): by elevation."""
+    ys = grid.ys[r0:r1]
+    dy = grid.field((float(grid.c0[1]), float(grid.cx[1]), float(grid.cy[1])), grid.xs, ys)
+    row, col = grid.norm2_terms()
+    k = (row[r0:r1, None] + col[None, :]).rsqrt_().mul_(dy)
+    k.clamp_(0.0, 1.0).sqrt_()
+    for ch in range(3):
+        h, z = lighting.horizon[ch], lighting.zenith[ch]
+        torch.mul(k, z - h, out=out[ch]).add_(h)
 
 
 def sky(grid: RayGrid, lighting: Lighting) -> torch.Tensor:
     """(rows, width, 3) linear sky: horizon to zenith by the ray's elevation."""
-    dx, dy, dz = (
-        grid.field((float(grid.c0[i]), float(grid.cx[i]), float(grid.cy[i])), grid.xs, grid.ys)
-        for i in range(3)
-    )
-    elevation = dy * (dx * dx + dy * dy + dz * dz).rsqrt()
-    k = elevation.clamp_(0.0, 1.0).sqrt_()[..., None]
-    device = grid.xs.device
-    horizon = torch.tensor(lighting.horizon, device=device)
-    zenith = torch.tensor(lighting.zenith, device=device)
-    return horizon + (zenith - horizon) * k
+    out = torch.empty(3, grid.rows, grid.width, device=grid.xs.device)
+    sky_into(out, grid, lighting, 0, grid.rows)
+    return out.permute(1, 2, 0)
 
 
 def linear_to_srgb(x: torch.Tensor) -> torch.Tensor:
@@ -99,3 +164,32 @@ def quantize_into(srgb: torch.Tensor, out: torch.Tensor) -> None:
     """Write [0, 1] floats as uint8 into ``out``; NaN becomes 0 instead of garbage."""
     q = torch.nan_to_num(srgb, nan=0.0, posinf=1.0, neginf=0.0).mul_(255.0).round_().clamp_(0, 255)
     out.copy_(q)
+
+
+@cache
+def srgb_lut(device: str) -> torch.Tensor:
+    """uint8 sRGB of the linear values i / (SRGB_LUT_STEPS - 1)."""
+    lin = torch.arange(SRGB_LUT_STEPS, dtype=torch.float64) / (SRGB_LUT_STEPS - 1)
+    lut = torch.empty(SRGB_LUT_STEPS, dtype=torch.uint8)
+    quantize_into(linear_to_srgb(lin), lut)
+    return lut.to(device)
+
+
+def encode_srgb_into(planes: torch.Tensor, out: torch.Tensor) -> None:
+    """Linear (3, H, W) planes -> uint8 sRGB (H, W, 3) ``out``: clamp (NaN -> 0), table lookup.
+
+    Same as ``quantize_into(linear_to_srgb(.))`` up to the table's resolution
+    (rarely 1 code off), at a fraction of the cost of ``pow``.
+    """
+    h, w = planes.shape[1:]
+    idx = torch.empty(h, w, 3, dtype=torch.int32, device=planes.device)
+    scaled = torch.empty(h, w, device=planes.device)
+    for ch in range(3):
+        torch.clamp(planes[ch], 0.0, 1.0, out=scaled)
+        scaled.mul_(SRGB_LUT_STEPS - 1).add_(0.5)
+        idx[..., ch].copy_(scaled)
+    # NaN survives the float clamp and converts to an out-of-range integer (INT_MIN
+    # on x86, 0 on ARM): clamping the index sends it to 0 like ``quantize_into``.
+    idx.clamp_(0, SRGB_LUT_STEPS - 1)
+    lut = srgb_lut(str(planes.device))
+    torch.index_select(lut, 0, idx.view(-1), out=out.view(-1))

@@ -1,7 +1,13 @@
-"""Attribute pass: for the pixels each object won, its normal, texture coordinates and mip level.
+"""Attribute pass: for the pixels each object won, what the shader needs.
 
-Runs once per object on exactly its own pixels (gathered by index), so every
-hit pixel is shaded once, whatever the overdraw of the depth pass.
+Bounded objects run once per shape class on exactly the pixels that class won
+(gathered by index), looking per-object parameters up in a small table, so
+every hit pixel is shaded once whatever the overdraw of the depth pass. Grounds
+run over the band rows that contain them, as affine fields.
+
+A surface is a set of rows of equal length (see ``SURFACE_ROWS``): texture
+coordinates in repeats, texture index, the mip footprint, linear tint, the two
+lighting terms of the normal (sun cosine and world up component), and s.
 """
 
 from __future__ import annotations
@@ -9,12 +15,17 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
-from server.render.intersect import DepthPass
+from server.render.intersect import ORIGIN, ClassHits, GroundHits
 from server.render.rays import FrameSetup, ObjectInstance, RayGrid
+from server.render.scene import Lighting
 from server.render.shapes import Box, Ground, Material, Quad, Sphere
 from server.render.textures import SIZE, TextureAtlas
+
+U, V, TEX, FOOT, TINT, LAM, NY, S = 0, 1, 2, 3, 4, 7, 8, 9
+SURFACE_ROWS = 10
 
 
 @dataclass(frozen=True)
@@ -26,130 +37,191 @@ class MaterialEntry:
     tile: tuple[float, float]
     mip: bool
 
+    def footprint_scale(self, pixel_angle: float) -> float:
+        """Factor f with mip level = floor(log2(f * dist * rsqrt(cos))) (0 without mips).
+
+        That is round(log2(footprint) + lod_bias), the footprint being
+        dist * pixel_angle * rsqrt(cos): adding 0.5 before the floor rounds.
+        """
+        return pixel_angle * 2.0 ** (self.lod_bias + 0.5) if self.mip else 0.0
+
 
 def material_entry(m: Material, atlas: TextureAtlas, lod_bias: float = 0.0) -> MaterialEntry:
     bias = math.log2(SIZE / math.sqrt(m.tile[0] * m.tile[1])) + lod_bias
     return MaterialEntry(float(atlas.index(m.texture)), m.tint, bias, m.tile, m.mip)
 
 
-@dataclass
-class Surface:
-    """Per hit pixel (all tensors length n) of one or several objects."""
-
-    flat: torch.Tensor  # int64 index into the band, row-major
-    dist: torch.Tensor  # distance along the ray (metres)
-    t: torch.Tensor  # view depth
-    normal: torch.Tensor  # (n, 3) world, facing the viewer
-    u: torch.Tensor  # texture repeats
-    v: torch.Tensor
-    texture: torch.Tensor  # float texture index
-    lod: torch.Tensor
-    tint: torch.Tensor  # (n, 3)
-
-    @staticmethod
-    def cat(parts: list[Surface]) -> Surface:
-        return Surface(
-            *(torch.cat([getattr(p, f) for p in parts]) for f in Surface.__dataclass_fields__)
-        )
+def sun_direction(lighting: Lighting) -> np.ndarray:
+    sun = np.asarray(lighting.sun_direction, dtype=np.float64)
+    return sun / np.linalg.norm(sun)
 
 
-def _select(
-    ids: torch.Tensor, rect: tuple[int, int, int, int], index: int, width: int
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    r0, r1, c0, c1 = rect
-    nz = (ids[r0:r1, c0:c1] == index).nonzero()
-    rows = nz[:, 0] + r0
-    cols = nz[:, 1] + c0
-    return rows, cols, rows * width + cols
-
-
-def _lod(
-    entry_lod: torch.Tensor | float,
-    dist: torch.Tensor,
-    cos: torch.Tensor,
-    pixel_angle: float,
+def _attr_table(
+    hits: ClassHits,
+    entries: dict[str, MaterialEntry],
+    grid: RayGrid,
+    sun: np.ndarray,
 ) -> torch.Tensor:
+    """(F, K) per object: material, local sun and up, shape parameters."""
+    cols = []
+    for inst in hits.insts:
+        e = entries[inst.obj.material]
+        rot = inst.world[:3, :3]
+        sun_l = rot.T @ sun
+        up_l = rot[1]  # rot.T @ (0, 1, 0)
+        col = [
+            e.texture,
+            1.0 / e.tile[0],
+            1.0 / e.tile[1],
+            e.footprint_scale(grid.pixel_angle),
+            *e.tint,
+            *(float(c) for c in sun_l),
+            *(float(c) for c in up_l),
+        ]
+        s = inst.obj.shape
+        if isinstance(s, Box):
+            col += [*(1.0 / h for h in s.half), *s.half]
+        elif isinstance(s, Sphere):
+            col += [1.0 / s.radius, s.radius]
+        else:
+            assert isinstance(s, Quad)
+            col += [s.width / 2, s.height]
+        cols.append(col)
+    table = torch.from_numpy(np.asarray(cols, dtype=np.float32).T.copy())
+    return table.to(hits.pix.device)
+
+
+# Rows of the attribute table.
+_TEX, _ITU, _ITV, _FS, _TINT, _SUN, _UP, _SHAPE = 0, 1, 2, 3, 4, 7, 10, 13
+
+
+def object_surface(
+    hits: ClassHits, entries: dict[str, MaterialEntry], grid: RayGrid, sun: np.ndarray
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(SURFACE_ROWS, n) surface of one class's pixels, and (3, n) local hit points."""
+    n = hits.pix.numel()
+    device = hits.pix.device
+    attr = _attr_table(hits, entries, grid, sun).index_select(1, hits.oid)
+    geo = hits.table.index_select(1, hits.oid)
+    s = hits.sd[0]
+    d = [hits.sd[1], hits.sd[2], hits.sd[3]]
+    t = s.reciprocal()
+    q = torch.empty(3, n, device=device)
+    for i in range(3):
+        torch.addcmul(geo[ORIGIN + i], d[i], t, out=q[i])
+    dn = d[0] * d[0]
+    dn.addcmul_(d[1], d[1]).addcmul_(d[2], d[2]).sqrt_()
+    out = torch.empty(SURFACE_ROWS, n, device=device)
+    sh = _SHAPE
+    nl: list[torch.Tensor | None]
+    if hits.shape is Box:
+        a = [q[i].abs().mul_(attr[sh + i]) for i in range(3)]
+        is_x = torch.ge(a[0], a[1]).float().mul_(torch.ge(a[0], a[2]))
+        is_y = torch.gt(a[1], a[0]).float().mul_(torch.ge(a[1], a[2]))
+        is_z = 1.0 - is_x - is_y
+        nl = [is_x * q[0].sign(), is_y * q[1].sign(), is_z.mul_(q[2].sign())]
+        zu = q[2] + attr[sh + 5]
+        torch.lerp(q[0] + attr[sh + 3], zu, is_x, out=out[U])
+        torch.lerp(attr[sh + 4] - q[1], zu, is_y, out=out[V])
+    elif hits.shape is Sphere:
+        inv_r, r = attr[sh], attr[sh + 1]
+        ns = [q[i] * inv_r for i in range(3)]
+        torch.addcmul(r * math.pi, torch.atan2(q[2], q[0]), r, out=out[U])
+        torch.mul(torch.acos(ns[1].clamp(-1.0, 1.0)), r, out=out[V])
+        nl = list(ns)
+    else:
+        nl = [None, None, None]
+        torch.add(q[0], attr[sh], out=out[U])
+        torch.sub(attr[sh + 1], q[1], out=out[V])
+    out[U].mul_(attr[_ITU])
+    out[V].mul_(attr[_ITV])
+    out[TEX].copy_(attr[_TEX])
+    out[TINT : TINT + 3].copy_(attr[_TINT : _TINT + 3])
+    out[S].copy_(s)
+    # Two-sided: turn the normal towards the viewer (inner box faces, backs of quads).
+    comps = [(c, d[i], i) for i, c in enumerate(nl) if c is not None]
+    if comps:
+        facing = comps[0][0] * comps[0][1]
+        for c, di, _ in comps[1:]:
+            facing.addcmul_(c, di)
+    else:  # quad: local normal +z
+        facing = d[2].clone()
+        comps = [(torch.ones(n, device=device), d[2], 2)]
+    flip = torch.gt(facing, 0.0).float().mul_(-2.0).add_(1.0)
+    lam = out[LAM]
+    ny = out[NY]
+    lam.zero_()
+    ny.zero_()
+    for c, _, i in comps:
+        lam.addcmul_(c, attr[_SUN + i])
+        ny.addcmul_(c, attr[_UP + i])
+    lam.mul_(flip).clamp_min_(0.0)
+    ny.mul_(flip)
     # Footprint grows as 1/cos at grazing angles; the square root splits the
     # difference between over-blurring (isotropic max) and shimmer.
-    footprint = dist * pixel_angle * cos.clamp_min(0.02).rsqrt()
-    return footprint.clamp_min(1e-12).log2() + entry_lod
+    cos = facing.abs_().div_(dn).clamp_(0.02, 1.0)
+    foot = out[FOOT]
+    torch.mul(dn, t, out=foot)
+    foot.mul_(cos.rsqrt_()).mul_(attr[_FS])
+    return out, q
 
 
-def surface_of(
-    inst: ObjectInstance,
+@dataclass
+class GroundSurface:
+    """A ground's surface over band rows [r0, r1), and its constant lighting terms."""
+
+    r0: int
+    r1: int
+    rows: torch.Tensor  # (SURFACE_ROWS, r1 - r0, width); LAM, NY unused
+    lam: float
+    ny: float
+
+
+def ground_surface(
+    g: GroundHits,
     entries: dict[str, MaterialEntry],
     setup: FrameSetup,
     grid: RayGrid,
-    depth: DepthPass,
-) -> Surface | None:
-    rect = depth.rects.get(inst.index)
-    if rect is None:
-        return None
-    rows, cols, flat = _select(depth.ids, rect, inst.index, grid.width)
-    n = flat.numel()
-    if n == 0:
-        return None
-    device = flat.device
-    xs, ys = grid.xs[cols], grid.ys[rows]
-    t = depth.t.view(-1)[flat]
+    rows: tuple[int, int],
+    sun: np.ndarray,
+) -> GroundSurface:
+    inst: ObjectInstance = g.inst
+    shape = inst.obj.shape
+    assert isinstance(shape, Ground)
+    r0, r1 = rows
+    xs, ys = grid.xs, grid.ys[r0:r1]
     local = inst.local
     o = local[:3, :3] @ grid.origin + local[:3, 3]
-    d = [a0 + xs * ax + ys * ay for a0, ax, ay in grid.direction_coefs(local[:3, :3])]
-    q = [float(o[i]) + t * d[i] for i in range(3)]
-    dnorm = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt()
-    dist = t * dnorm
-    shape = inst.obj.shape
-    entry = entries[inst.obj.material]
-    zero = torch.zeros(n, device=device)
-    one = torch.ones(n, device=device)
-    texture: torch.Tensor = torch.full((n,), entry.texture, device=device)
-    tint: torch.Tensor = torch.tensor(entry.tint, device=device).expand(n, 3)
-    lod_bias: torch.Tensor | float = entry.lod_bias
-    mip: torch.Tensor | float = 1.0 if entry.mip else 0.0
-    tile_u: torch.Tensor | float = entry.tile[0]
-    tile_v: torch.Tensor | float = entry.tile[1]
-    if isinstance(shape, Ground):
-        nl = [zero, one, zero]
-        um, vm = q[0], q[2]
-        if shape.path_material is not None:
-            path = entries[shape.path_material]
-            on_path = q[0].abs() < shape.path_half_width
-            texture = torch.where(on_path, path.texture, entry.texture)
-            tint = torch.where(on_path[:, None], torch.tensor(path.tint, device=device), tint)
-            lod_bias = torch.where(on_path, path.lod_bias, entry.lod_bias)
-            tile_u = torch.where(on_path, path.tile[0], entry.tile[0])
-            tile_v = torch.where(on_path, path.tile[1], entry.tile[1])
-    elif isinstance(shape, Box):
-        hx, hy, hz = shape.half
-        a = [q[0].abs() / hx, q[1].abs() / hy, q[2].abs() / hz]
-        is_x = ((a[0] >= a[1]) & (a[0] >= a[2])).float()
-        is_y = ((a[1] > a[0]) & (a[1] >= a[2])).float()
-        is_z = 1.0 - is_x - is_y
-        nl = [is_x * q[0].sign(), is_y * q[1].sign(), is_z * q[2].sign()]
-        um = is_x * (q[2] + hz) + (1.0 - is_x) * (q[0] + hx)
-        vm = is_y * (q[2] + hz) + (1.0 - is_y) * (hy - q[1])
-    elif isinstance(shape, Sphere):
-        r = shape.radius
-        nl = [q[0] / r, q[1] / r, q[2] / r]
-        um = (torch.atan2(q[2], q[0]) / (2 * math.pi) + 0.5) * (2 * math.pi * r)
-        vm = torch.acos((q[1] / r).clamp(-1.0, 1.0)) * r
+    coefs = grid.direction_coefs(local[:3, :3])
+    s = g.s[r0:r1].clamp_min(1.0 / setup.far)  # sky pixels: finite, blended away later
+    t = s.reciprocal_()
+    out = torch.empty(SURFACE_ROWS, r1 - r0, grid.width, device=xs.device)
+    qx = grid.field(coefs[0], xs, ys).mul_(t).add_(float(o[0]))
+    qz = grid.field(coefs[2], xs, ys).mul_(t).add_(float(o[2]))
+    e = entries[inst.obj.material]
+    fs = e.footprint_scale(grid.pixel_angle)
+    params = [e.texture, 1.0 / e.tile[0], 1.0 / e.tile[1], fs, *e.tint]
+    targets = [out[TEX], out[U], out[V], out[FOOT], out[TINT], out[TINT + 1], out[TINT + 2]]
+    if shape.path_material is not None:
+        p = entries[shape.path_material]
+        fp = p.footprint_scale(grid.pixel_angle)
+        path = [p.texture, 1.0 / p.tile[0], 1.0 / p.tile[1], fp, *p.tint]
+        on_path = torch.lt(qx.abs(), shape.path_half_width).float()
+        for dst, a, b in zip(targets, params, path, strict=True):
+            torch.mul(on_path, b - a, out=dst).add_(a)
     else:
-        assert isinstance(shape, Quad)
-        nl = [zero, zero, one]
-        um = q[0] + shape.width / 2
-        vm = shape.height - q[1]
-    # Two-sided: turn the normal towards the viewer (inner box faces, backs of quads).
-    facing = nl[0] * d[0] + nl[1] * d[1] + nl[2] * d[2]
-    flip = 1.0 - 2.0 * (facing > 0).float()
-    nl = [c * flip for c in nl]
-    cos = (facing.abs() / dnorm).clamp_max(1.0)
-    lod = _lod(lod_bias, dist, cos, grid.pixel_angle) * mip
-    rot = inst.world[:3, :3]
-    normal = torch.stack(
-        [
-            float(rot[i, 0]) * nl[0] + float(rot[i, 1]) * nl[1] + float(rot[i, 2]) * nl[2]
-            for i in range(3)
-        ],
-        dim=1,
-    )
-    return Surface(flat, dist, t, normal, um / tile_u, vm / tile_v, texture, lod, tint)
+        for dst, a in zip(targets, params, strict=True):
+            dst.fill_(a)
+    out[U].mul_(qx)
+    out[V].mul_(qz)
+    out[S].copy_(g.s[r0:r1])
+    # Normal: local +y, turned towards the viewer (who is on the side of oy).
+    flip = 1.0 if o[1] > 0 else -1.0
+    n_world = inst.world[:3, 1] * flip
+    row, col = grid.norm2_terms()
+    dn = (row[r0:r1, None] + col[None, :]).sqrt_()
+    cos = grid.field(coefs[1], xs, ys).abs_().div_(dn).clamp_(0.02, 1.0)
+    foot = out[FOOT]
+    foot.mul_(dn).mul_(t).mul_(cos.rsqrt_())
+    lam = max(0.0, float(n_world @ sun))
+    return GroundSurface(r0, r1, out, lam, float(n_world[1]))
