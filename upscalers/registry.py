@@ -5,10 +5,20 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from upscalers.base import Upscaler
+from upscalers.fsr1 import EasuRcasUpscaler, EasuUpscaler
+from upscalers.lanczos import Lanczos2Upscaler
 from upscalers.resample import BicubicUpscaler, BilinearUpscaler, NearestUpscaler
 
 _REGISTRY: dict[str, Callable[[], Upscaler]] = {
-    cls.name: cls for cls in (NearestUpscaler, BilinearUpscaler, BicubicUpscaler)
+    cls.name: cls
+    for cls in (
+        NearestUpscaler,
+        BilinearUpscaler,
+        BicubicUpscaler,
+        Lanczos2Upscaler,
+        EasuUpscaler,
+        EasuRcasUpscaler,
+    )
 }
 
 
