@@ -29,8 +29,9 @@ from typing import Any
 
 import numpy as np
 from PIL import Image
-from pydantic import BaseModel, ConfigDict, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, ValidationError
 
+from server.config_types import UpscalerName
 from server.control import GetStatus, SetUpscaler, send_control
 from server.game_input import InputMessage, send_input
 from server.preview_page import PAGE_HTML
@@ -60,14 +61,7 @@ class ControlRequest(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    upscaler: str
-
-    @field_validator("upscaler")
-    @classmethod
-    def _known(cls, v: str) -> str:
-        if v not in registry.available():
-            raise ValueError(f"unknown upscaler {v!r}; allowed: {', '.join(registry.available())}")
-        return v
+    upscaler: UpscalerName
 
 
 class _RateMeter:

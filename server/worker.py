@@ -17,14 +17,14 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field
 
+from server.config_types import SizeText, UpscalerName
 from server.control import ControlServer, GetStatus, SetUpscaler, parse_message
 from server.frame import Size
 from server.ring import FrameRing
 from server.ring_frames import attach_display_ring, attach_render_ring, render_frame_of, write_meta
 from server.timing import Stage, stamp
-from upscalers import registry
 from upscalers.host import UpscalerHost
 from upscalers.output import quantize_into
 
@@ -38,25 +38,12 @@ class WorkerConfig(BaseModel):
 
     ring_in: str = Field(description="name of ring R (G-buffers) to consume")
     ring_out: str = Field(description="name of ring U (display frames) to produce")
-    upscaler: str = Field(default="bilinear", description="upscaler to start with")
-    display_size: str = Field(default="1280x720", description="output size WIDTHxHEIGHT")
+    upscaler: UpscalerName = Field(default="bilinear", description="upscaler to start with")
+    display_size: SizeText = Field(default="1280x720", description="output size WIDTHxHEIGHT")
     control_path: Path | None = Field(default=None, description="Unix socket for control")
     threads: int = Field(default=1, ge=1, le=256, description="torch CPU threads")
     attach_timeout_s: float = Field(default=10.0, ge=0, description="wait for the rings")
     newest: bool = Field(default=False, description="skip to the newest frame when behind")
-
-    @field_validator("upscaler")
-    @classmethod
-    def _known_upscaler(cls, v: str) -> str:
-        if v not in registry.available():
-            raise ValueError(f"unknown upscaler {v!r}; allowed: {', '.join(registry.available())}")
-        return v
-
-    @field_validator("display_size")
-    @classmethod
-    def _valid_size(cls, v: str) -> str:
-        Size.parse(v)
-        return v
 
 
 @dataclass

@@ -1,9 +1,10 @@
-"""``upcast eval NAME ...``: evaluations that compare methods (server/eval/<NAME>.py)."""
+"""``upcast eval NAME ...``: evaluations in server/eval/ that compare methods."""
 
 from __future__ import annotations
 
 import argparse
-import importlib
+
+from server.commands.dispatch import add_choice_arguments, run_choice
 
 EVALUATIONS: dict[str, str] = {
     "upscalers": "speed against error of every upscaler, per scene and scale",
@@ -11,13 +12,8 @@ EVALUATIONS: dict[str, str] = {
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("evaluation", choices=sorted(EVALUATIONS), help="which evaluation")
-    parser.add_argument("options", nargs=argparse.REMAINDER, help="its options (NAME --help)")
+    add_choice_arguments(parser, "evaluation", EVALUATIONS)
 
 
 def run(args: argparse.Namespace) -> int:
-    name: str = args.evaluation
-    mod = importlib.import_module(f"server.eval.{name}")
-    sub = argparse.ArgumentParser(prog=f"upcast eval {name}", description=EVALUATIONS[name])
-    mod.add_arguments(sub)
-    return int(mod.run(sub.parse_args(args.options)))
+    return run_choice("eval", "server.eval", EVALUATIONS, args)

@@ -1,0 +1,32 @@
+"""Commands with a second level (``upcast bench NAME``, ``upcast eval NAME``).
+
+The chosen module under ``package`` provides ``add_arguments(parser)`` and
+``run(args)``; only that module is imported, so each keeps its dependencies
+to itself.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+
+
+def add_choice_arguments(
+    parser: argparse.ArgumentParser, kind: str, choices: dict[str, str]
+) -> None:
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.epilog = f"{kind}s:\n" + "\n".join(f"  {k:10} {v}" for k, v in choices.items())
+    parser.add_argument(
+        "choice", metavar=kind.upper(), choices=sorted(choices), help=f"which {kind}"
+    )
+    parser.add_argument("options", nargs=argparse.REMAINDER, help="its options (NAME --help)")
+
+
+def run_choice(
+    command: str, package: str, choices: dict[str, str], args: argparse.Namespace
+) -> int:
+    name: str = args.choice
+    module = importlib.import_module(f"{package}.{name}")
+    sub = argparse.ArgumentParser(prog=f"upcast {command} {name}", description=choices[name])
+    module.add_arguments(sub)
+    return int(module.run(sub.parse_args(args.options)))

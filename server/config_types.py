@@ -1,0 +1,28 @@
+"""Field types shared by the pydantic models at the edges (CLI, HTTP, control).
+
+Each checks its value once, here, with a message that names what is allowed.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from pydantic import AfterValidator
+
+from server.frame import Size
+from upscalers import registry
+
+
+def _known_upscaler(name: str) -> str:
+    if name not in registry.available():
+        raise ValueError(f"unknown upscaler {name!r}; allowed: {', '.join(registry.available())}")
+    return name
+
+
+def _size_text(text: str) -> str:
+    Size.parse(text)  # raises ValueError naming the expected form
+    return text
+
+
+UpscalerName = Annotated[str, AfterValidator(_known_upscaler)]
+SizeText = Annotated[str, AfterValidator(_size_text)]
