@@ -8,6 +8,7 @@ from upscalers.base import Upscaler
 from upscalers.fsr1 import EasuRcasUpscaler, EasuUpscaler
 from upscalers.lanczos import Lanczos2Upscaler
 from upscalers.resample import BicubicUpscaler, BilinearUpscaler, NearestUpscaler
+from upscalers.temporal import TemporalUpscaler
 
 _REGISTRY: dict[str, Callable[[], Upscaler]] = {
     cls.name: cls
@@ -18,6 +19,7 @@ _REGISTRY: dict[str, Callable[[], Upscaler]] = {
         Lanczos2Upscaler,
         EasuUpscaler,
         EasuRcasUpscaler,
+        TemporalUpscaler,
     )
 }
 

@@ -1,0 +1,320 @@
+"""Temporal upscaler (FSR 2 / DLSS class): jittered samples accumulated in display-size history.
+
+Consumes exactly the frame contract of ``server/frame.py`` and nothing else:
+
+- render pixel (i, j) of this frame was sampled at (i + 0.5 + jx, j + 0.5 + jy);
+- motion (mx, my), in render pixels and unjittered, takes the surface seen at a
+  sample position p to p + motion in the previous frame;
+- depth is NDC z in [0, 1] (1.0 sky), made linear with the camera's near/far;
+- dynamic_mask marks moving objects; FrameFlags.RESET starts history afresh.
+
+Per frame:
+
+1. At render size (cheap): colour to YCoCg, the 3x3 YCoCg min/max box of every
+   sample, motion dilated to the closest depth of the 3x3 neighbourhood (so
+   edges move with the foreground, as FSR 2 does), and a per-pixel history
+   trust: 0 where the reprojected position leaves the screen or was hidden in
+   the previous frame (disocclusion: all previous depths around the
+   reprojected position are clearly nearer than this surface), reduced on
+   moving objects.
+2. At display size: the current frame reconstructed at each display pixel
+   from the samples at their true (jittered) positions, plus a sample weight
+   that says how close the nearest real sample landed to the display pixel
+   centre; history fetched at p + motion, clamped to the current YCoCg box and
+   blended with ``alpha = w / (trust * W + w)`` where W is the accumulated
+   weight (capped, so alpha never drops below about 1 / W_max).
+
+Colour space: history is kept in YCoCg of the *sRGB-encoded* values. The
+input and the output are sRGB, so no transfer-function work happens at display
+size (a pow per sub-pixel costs as much as the rest of the blend on a CPU), and
+the neighbourhood box is perceptually even, so the clamp does not let dark
+ghosts through while clipping bright ones. Averaging encoded values instead of
+linear light differs only where samples of very different brightness are
+mixed inside one display pixel; the clamp bounds that error to the local box.
+YCoCg is linear in RGB, so interpolation and blending commute with it and the
+one conversion back happens at the output.
+
+NaN and Inf never enter the history: inputs are sanitized and the fetched
+history is cleaned before use (a planted NaN is dropped, not spread).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import ClassVar
+
+import torch
+import torch.nn.functional as F
+
+from server.frame import FrameFlags, RenderFrame, Size
+from upscalers import temporal_ops as ops
+from upscalers.base import Upscaler
+
+
+@dataclass(frozen=True)
+class TemporalParams:
+    """Tuning of the accumulation; defaults were chosen on the reference game scenes."""
+
+    # Accumulated sample weight is capped here: alpha >= about 1 / (max_weight + 1).
+    max_weight: float = 24.0
+    # Sample weight: Gaussian of the nearest sample's distance from the display pixel
+    # centre, in display pixels; floored so history never freezes.
+    sample_sigma: float = 0.35
+    min_sample_weight: float = 0.01
+    # Disocclusion: history is dropped where the farthest previous depth around the
+    # reprojected position is nearer than this surface by more than this fraction.
+    depth_tolerance: float = 0.05
+    # History weight kept per frame on moving objects (partial trust, never full).
+    dynamic_keep: float = 0.5
+    # Current-frame reconstruction: bilinear between the jittered samples with the
+    # fraction pushed towards the nearest sample (1 = bilinear, larger = crisper).
+    reconstruct_sharpness: float = 3.0
+    # Unsharp amount applied to the render samples (4-neighbour cross): the game picks
+    # texture mips for the render size, accumulation alone cannot undo that blur.
+    presharpen: float = 0.75
+
+
+@dataclass
+class _DisplayInputs:
+    """Per-frame inputs of the display-size blend in layout D = (S, S, h, w): planar for
+    an integer scale S (display pixel (i S + a, j S + b) at [a, b, i, j], so render-size
+    values broadcast as (C, 1, 1, h, w) views with long contiguous rows), else S = 1 and
+    (h, w) = (H, W) with render-size values upsampled."""
+
+    cur: torch.Tensor  # (3, *D) current-frame reconstruction, YCoCg
+    lo: torch.Tensor  # (3, *D) broadcastable: YCoCg box
+    hi: torch.Tensor
+    prev_weight: torch.Tensor  # (1, *D) broadcastable: trusted accumulated weight
+    weight: torch.Tensor  # (1, *D) broadcastable: this frame's sample weight
+    motion: torch.Tensor  # (*D, 2) broadcastable: motion in render pixels
+
+
+class TemporalUpscaler(Upscaler):
+    """Jittered-sample accumulation with reprojection, disocclusion and a YCoCg clamp."""
+
+    name: ClassVar[str] = "temporal"
+    temporal: ClassVar[bool] = True
+
+    def __init__(
+        self,
+        params: TemporalParams | None = None,
+        *,
+        device: str | torch.device | None = None,
+        dtype: torch.dtype = torch.float32,
+    ) -> None:
+        self.params = params or TemporalParams()
+        if device is None:
+            device = "cuda" if torch.cuda.is_available() else "cpu"
+        self.device = torch.device(device)
+        self.dtype = dtype
+        # Display-size YCoCg history (1, 3, H, W) and, at render size, the accumulated
+        # sample weight (h, w) and the 2x2 max of linear depth, both of the last frame.
+        self._history: torch.Tensor | None = None
+        self._weight: torch.Tensor | None = None
+        self._prev_far: torch.Tensor | None = None
+        self._prev_jitter = (0.0, 0.0)
+        self._key: tuple[Size, Size, torch.device, torch.dtype] | None = None
+        self._base_grid: torch.Tensor | None = None
+
+    def reset(self) -> None:
+        self._history = None
+        self._weight = None
+        self._prev_far = None
+        self._prev_jitter = (0.0, 0.0)
+
+    def upscale(self, frame: RenderFrame, display_size: Size) -> torch.Tensor:
+        p = self.params
+        dev = ops.input_device(frame, self.device)
+        dt = self.dtype
+        display = Size(int(display_size[0]), int(display_size[1]))
+        h, w = frame.depth.shape[:2]
+        render = Size(w, h)
+        key = (render, display, dev, dt)
+        if key != self._key:
+            self.reset()
+            self._key = key
+            self._base_grid = None
+        if frame.meta.flags & FrameFlags.RESET:
+            self.reset()
+        big_w, big_h = display
+        jit = ops.jitter(frame)
+
+        # ---- render size: colour, box, dilated motion, trust, accumulated weight ----
+        rgb = ops.as_tensor(frame.color, dev).permute(2, 0, 1).to(dt).mul_(1.0 / 255.0)
+        ycocg = ops.rgb_to_ycocg(rgb)
+        if p.presharpen > 0.0:
+            ycocg = ops.sharpen(ycocg, p.presharpen)
+        lo, hi = ops.box_3x3(ycocg)
+        depth = ops.as_tensor(frame.depth, dev).to(dt)
+        depth = torch.nan_to_num(depth, nan=1.0, posinf=1.0, neginf=0.0).clamp_(0.0, 1.0)
+        motion = ops.as_tensor(frame.motion, dev).to(dt)
+        lim = 4.0 * max(w, h)
+        motion = torch.nan_to_num(motion, nan=0.0, posinf=0.0, neginf=0.0).clamp_(-lim, lim)
+        nf = ops.near_far(frame)
+        if nf is None:
+            lin = depth
+        else:
+            near, far = nf
+            lin = torch.reciprocal(depth.mul(-(far - near) / (near * far)).add_(1.0 / near))
+        mask = ops.as_tensor(frame.dynamic_mask, dev).to(dt).unsqueeze(0)
+        _, mask_d = ops.box_3x3(mask)
+        lin_d, mv = ops.closest_3x3(lin, motion.permute(2, 0, 1))
+        prev_weight = self._reproject_weight(lin_d, mv, mask_d[0], jit)
+        self._prev_far = ops.max_2x2(lin)
+        self._prev_jitter = jit
+
+        # ---- display size ----
+        scale = _integer_scale(render, display) or 1
+        if scale > 1:
+            inputs = self._blocked_inputs(ycocg, lo, hi, prev_weight, mv, jit, scale)
+        else:
+            inputs = self._generic_inputs(ycocg, lo, hi, prev_weight, mv, jit, display)
+        layout = inputs.cur.shape[1:]
+        if self._base_grid is None:
+            self._base_grid = ops.pixel_grid(display, scale, dev, dt)
+        history = self._history
+        if history is None:
+            prev = inputs.cur.clone()
+        elif bool(mv.abs().max() == 0.0):
+            # Nothing moved: the fetch would be the identity.
+            prev = torch.nan_to_num(ops.to_planar(history[0], scale), nan=0.0)
+        else:
+            step = torch.tensor([2.0 / w, 2.0 / h], device=dev, dtype=dt)
+            grid = torch.addcmul(self._base_grid, inputs.motion, step)
+            prev = F.grid_sample(
+                history,
+                grid.view(1, -1, layout[-1], 2),
+                mode="bilinear",
+                padding_mode="border",
+                align_corners=False,
+            ).view(3, *layout)
+            torch.nan_to_num_(prev, nan=0.0)
+        # Inf that survived becomes the box edge here.
+        prev.clamp_(inputs.lo, inputs.hi)
+        denom = inputs.prev_weight + inputs.weight
+        alpha = torch.div(inputs.weight, denom, out=denom)
+        new = prev.lerp_(inputs.cur, alpha)
+        if scale > 1:
+            if history is None:
+                history = torch.empty((1, 3, big_h, big_w), device=dev, dtype=dt)
+            ops.to_planar(history[0], scale).copy_(new)
+        else:
+            history = new.view(1, 3, big_h, big_w)
+        self._history = history
+        out = torch.empty((3, big_h, big_w), device=dev, dtype=torch.float32)
+        ops.ycocg_to_rgb(history[0], out)
+        return out.clamp_(0.0, 1.0)
+
+    # -- render size -----------------------------------------------------------------
+
+    def _reproject_weight(
+        self,
+        lin_d: torch.Tensor,
+        mv: torch.Tensor,
+        mask_d: torch.Tensor,
+        jit: tuple[float, float],
+    ) -> torch.Tensor:
+        """(h, w) accumulated weight fetched at the reprojected position, times trust:
+        0 off screen or where disoccluded, reduced on moving objects."""
+        p = self.params
+        h, w = lin_d.shape
+        dev, dt = lin_d.device, lin_d.dtype
+        if self._prev_far is None or self._weight is None:
+            return torch.zeros((h, w), device=dev, dtype=dt)
+        xs = torch.arange(w, device=dev, dtype=dt).add_(0.5 + jit[0])
+        ys = torch.arange(h, device=dev, dtype=dt).add_(0.5 + jit[1])
+        qx = mv[0] + xs
+        qy = mv[1] + ys.unsqueeze(1)
+        inside = (qx >= 0.0) & (qx <= w) & (qy >= 0.0) & (qy <= h)
+        pjx, pjy = self._prev_jitter
+        kx = (qx - (0.5 + pjx)).floor_().clamp_(0, w - 1).long()
+        ky = (qy - (0.5 + pjy)).floor_().clamp_(0, h - 1).long()
+        idx = ky.mul_(w).add_(kx)
+        # Visible last frame if the farthest depth around the reprojected position is not
+        # clearly nearer than this surface.
+        far = self._prev_far.view(-1).take(idx).mul_(1.0 + p.depth_tolerance)
+        trust = (inside & (far >= lin_d)).to(dt)
+        trust.mul_(mask_d.mul(p.dynamic_keep - 1.0).add_(1.0))
+        weight = torch.nan_to_num(self._weight.view(-1).take(idx), nan=0.0, posinf=0.0)
+        return weight.clamp_(0.0, p.max_weight).mul_(trust)
+
+    def _store_weight(self, prev_weight: torch.Tensor, mean_sample_weight: float) -> None:
+        self._weight = (prev_weight + mean_sample_weight).clamp_(max=self.params.max_weight)
+
+    # -- display layouts -------------------------------------------------------------
+
+    def _axis_weights(
+        self, n: int, display: int, render: int, j: float, dev: torch.device
+    ) -> torch.Tensor:
+        p = self.params
+        g = ops.axis_weight(n, display, render, j, p.sample_sigma, dev, self.dtype)
+        return g.clamp_(min=p.min_sample_weight)
+
+    def _blocked_inputs(
+        self,
+        ycocg: torch.Tensor,
+        lo: torch.Tensor,
+        hi: torch.Tensor,
+        prev_weight: torch.Tensor,
+        mv: torch.Tensor,
+        jit: tuple[float, float],
+        scale: int,
+    ) -> _DisplayInputs:
+        _, h, w = ycocg.shape
+        dev = ycocg.device
+        cur = torch.empty((3, scale, scale, h, w), device=dev, dtype=self.dtype)
+        ops.reconstruct_blocked(ycocg, scale, jit, self.params.reconstruct_sharpness, cur)
+        gx = self._axis_weights(scale, w * scale, w, jit[0], dev)
+        gy = self._axis_weights(scale, h * scale, h, jit[1], dev)
+        weight = torch.outer(gy, gx)
+        self._store_weight(prev_weight, float(weight.mean()))
+        return _DisplayInputs(
+            cur=cur,
+            lo=lo.view(3, 1, 1, h, w),
+            hi=hi.view(3, 1, 1, h, w),
+            prev_weight=prev_weight.view(1, 1, 1, h, w),
+            weight=weight.view(1, scale, scale, 1, 1),
+            motion=mv.permute(1, 2, 0).contiguous().view(1, 1, h, w, 2),
+        )
+
+    def _generic_inputs(
+        self,
+        ycocg: torch.Tensor,
+        lo: torch.Tensor,
+        hi: torch.Tensor,
+        prev_weight: torch.Tensor,
+        mv: torch.Tensor,
+        jit: tuple[float, float],
+        display: Size,
+    ) -> _DisplayInputs:
+        _, h, w = ycocg.shape
+        big_w, big_h = display
+        dev, dt = ycocg.device, self.dtype
+        k = self.params.reconstruct_sharpness
+        grid = ops.jittered_grid(display, Size(w, h), jit, k, dev, dt)
+        cur = F.grid_sample(
+            ycocg.unsqueeze(0), grid, mode="bilinear", padding_mode="border", align_corners=False
+        )[0]
+        # Nearest render pixel of each display pixel (unjittered: the box is 3x3 wide).
+        iy = ops.nearest_index(big_h, h, dev)
+        ix = ops.nearest_index(big_w, w, dev)
+        packed = torch.cat((lo, hi, prev_weight.unsqueeze(0), mv))
+        up = packed.index_select(1, iy).index_select(2, ix).view(9, 1, 1, big_h, big_w)
+        gx = self._axis_weights(big_w, big_w, w, jit[0], dev)
+        gy = self._axis_weights(big_h, big_h, h, jit[1], dev)
+        self._store_weight(prev_weight, float(gx.mean() * gy.mean()))
+        return _DisplayInputs(
+            cur=cur.view(3, 1, 1, big_h, big_w),
+            lo=up[0:3],
+            hi=up[3:6],
+            prev_weight=up[6:7],
+            weight=torch.outer(gy, gx).view(1, 1, 1, big_h, big_w),
+            motion=up[7:9].permute(1, 2, 3, 4, 0),
+        )
+
+
+def _integer_scale(render: Size, display: Size) -> int | None:
+    s = display.width // render.width
+    if s >= 1 and display.width == s * render.width and display.height == s * render.height:
+        return s
+    return None

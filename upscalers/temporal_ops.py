@@ -1,0 +1,218 @@
+"""Tensor helpers of the temporal upscaler (``upscalers/temporal.py``): colour
+transforms, 3x3 neighbourhood reductions, sampling grids and sample weights.
+
+All work on (C, H, W) tensors with arithmetic selects (no ``torch.where``, no
+boolean indexing): both are slow on the CPU at these sizes.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from server.frame import RenderFrame, Size
+
+
+def as_tensor(array: Any, device: torch.device) -> torch.Tensor:
+    """A tensor on ``device`` from a numpy array (read-only views OK) or a tensor."""
+    if isinstance(array, torch.Tensor):
+        return array.to(device)
+    with warnings.catch_warnings():
+        # Ring slots are read-only views; nothing here writes to them.
+        warnings.simplefilter("ignore", UserWarning)
+        t = torch.from_numpy(np.asarray(array))
+    return t.to(device)
+
+
+def input_device(frame: RenderFrame, default: torch.device) -> torch.device:
+    color: Any = frame.color
+    return color.device if isinstance(color, torch.Tensor) else default
+
+
+def rgb_to_ycocg(rgb: torch.Tensor) -> torch.Tensor:
+    """(3, ...) RGB -> (3, ...) Y, Co, Cg (lossless-invertible linear transform)."""
+    r, g, b = rgb.unbind(0)
+    rb = r + b
+    return torch.stack((0.25 * rb + 0.5 * g, 0.5 * (r - b), 0.5 * g - 0.25 * rb))
+
+
+def ycocg_to_rgb(ycocg: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
+    """(3, H, W) YCoCg -> RGB written into ``out`` (3, H, W)."""
+    y, co, cg = ycocg.unbind(0)
+    t = y - cg
+    torch.add(t, co, out=out[0])
+    torch.add(y, cg, out=out[1])
+    torch.sub(t, co, out=out[2])
+    return out
+
+
+def pad1(x: torch.Tensor) -> torch.Tensor:
+    """(C, H, W) -> (C, H + 2, W + 2), edges replicated."""
+    return F.pad(x.unsqueeze(0), (1, 1, 1, 1), mode="replicate")[0]
+
+
+def box_3x3(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-pixel min and max over the 3x3 neighbourhood of a (C, H, W) tensor."""
+    p = pad1(x)
+    left, mid, right = p[..., :-2], p[..., 1:-1], p[..., 2:]
+    lo = torch.minimum(torch.minimum(left, mid), right)
+    hi = torch.maximum(torch.maximum(left, mid), right)
+    lo = torch.minimum(torch.minimum(lo[:, :-2], lo[:, 1:-1]), lo[:, 2:])
+    hi = torch.maximum(torch.maximum(hi[:, :-2], hi[:, 1:-1]), hi[:, 2:])
+    return lo, hi
+
+
+def closest_3x3(depth: torch.Tensor, carry: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per pixel, the smallest depth of the 3x3 neighbourhood of the (H, W) depth and the
+    ``carry`` (C, H, W) values that go with it (separable: row then column), with
+    arithmetic selects (no torch.where)."""
+    d = pad1(depth.unsqueeze(0))
+    c = pad1(carry)
+    best_d, best_c = d[..., 1:-1], c[..., 1:-1]
+    for sl in (slice(0, -2), slice(2, None)):
+        cand = d[..., sl]
+        closer = (cand < best_d).to(depth.dtype)
+        best_d = torch.minimum(best_d, cand)
+        best_c = torch.lerp(best_c, c[..., sl], closer)
+    d, c = best_d, best_c
+    best_d, best_c = d[:, 1:-1], c[:, 1:-1]
+    for sl in (slice(0, -2), slice(2, None)):
+        cand = d[:, sl]
+        closer = (cand < best_d).to(depth.dtype)
+        best_d = torch.minimum(best_d, cand)
+        best_c = torch.lerp(best_c, c[:, sl], closer)
+    return best_d[0], best_c
+
+
+def sharpen(x: torch.Tensor, amount: float) -> torch.Tensor:
+    """x + amount * (x - mean of the 4 edge neighbours), edges replicated, (C, H, W)."""
+    pad = pad1(x)
+    nb = pad[:, :-2, 1:-1] + pad[:, 2:, 1:-1] + pad[:, 1:-1, :-2] + pad[:, 1:-1, 2:]
+    return nb.mul_(-0.25 * amount).add_(x, alpha=1.0 + amount)
+
+
+def max_2x2(x: torch.Tensor) -> torch.Tensor:
+    """out[j, i] = max of x over [j, j + 1] x [i, i + 1] (edges replicated)."""
+    h, w = x.shape
+    if w > 1:
+        x = torch.maximum(x, torch.cat((x[:, 1:], x[:, w - 1 :]), 1))
+    if h > 1:
+        x = torch.maximum(x, torch.cat((x[1:], x[h - 1 :]), 0))
+    return x
+
+
+def jitter(frame: RenderFrame) -> tuple[float, float]:
+    jx, jy = frame.meta.jitter
+    jx = float(jx) if math.isfinite(jx) else 0.0
+    jy = float(jy) if math.isfinite(jy) else 0.0
+    return min(max(jx, -0.5), 0.5), min(max(jy, -0.5), 0.5)
+
+
+def near_far(frame: RenderFrame) -> tuple[float, float] | None:
+    near, far = float(frame.meta.camera.near), float(frame.meta.camera.far)
+    if math.isfinite(near) and math.isfinite(far) and 0.0 < near < far:
+        return near, far
+    return None
+
+
+def pixel_grid(display: Size, scale: int, dev: torch.device, dt: torch.dtype) -> torch.Tensor:
+    """(S, S, h, w, 2) normalized grid_sample coordinates of the display pixel centres in
+    planar layout (see ``reconstruct_blocked``; S = 1 is the plain (1, 1, H, W, 2))."""
+    big_w, big_h = display
+    gx = torch.arange(big_w, device=dev, dtype=dt).add_(0.5).mul_(2.0 / big_w).sub_(1.0)
+    gy = torch.arange(big_h, device=dev, dtype=dt).add_(0.5).mul_(2.0 / big_h).sub_(1.0)
+    grid = torch.stack((gx.expand(big_h, big_w), gy.unsqueeze(1).expand(big_h, big_w)), -1)
+    return to_planar(grid.permute(2, 0, 1), scale).permute(1, 2, 3, 4, 0).contiguous()
+
+
+def to_planar(x: torch.Tensor, scale: int) -> torch.Tensor:
+    """(C, H, W) standard layout -> (C, S, S, H/S, W/S) planar view (no copy)."""
+    c, big_h, big_w = x.shape
+    return x.view(c, big_h // scale, scale, big_w // scale, scale).permute(0, 2, 4, 1, 3)
+
+
+def sharpen_fraction(u: torch.Tensor, k: float) -> torch.Tensor:
+    """Positions u (grid_sample pixel units) with the fraction between the two bracketing
+    sample centres pushed towards the nearer one by factor k."""
+    if k == 1.0:
+        return u
+    base = (u - 0.5).floor_()
+    frac = (u - 0.5 - base).sub_(0.5).mul_(k).clamp_(-0.5, 0.5).add_(0.5)
+    return base.add_(0.5).add_(frac)
+
+
+def jittered_grid(
+    display: Size,
+    render: Size,
+    jitter: tuple[float, float],
+    k: float,
+    dev: torch.device,
+    dt: torch.dtype,
+) -> torch.Tensor:
+    """Grid that samples the render image at the display pixel centres, with render
+    pixel i taken to sit at i + 0.5 + jitter (so grid_sample's i + 0.5 is shifted)."""
+    big_w, big_h = display
+    w, h = render
+    gx = torch.arange(big_w, device=dev, dtype=dt).add_(0.5).mul_(w / big_w).sub_(jitter[0])
+    gy = torch.arange(big_h, device=dev, dtype=dt).add_(0.5).mul_(h / big_h).sub_(jitter[1])
+    gx, gy = sharpen_fraction(gx, k), sharpen_fraction(gy, k)
+    gx = gx.mul_(2.0 / w).sub_(1.0)
+    gy = gy.mul_(2.0 / h).sub_(1.0)
+    return torch.stack((gx.expand(big_h, big_w), gy.unsqueeze(1).expand(big_h, big_w)), -1)[None]
+
+
+def axis_weight(
+    n: int, n_display: int, n_render: int, j: float, sigma: float, dev: torch.device,
+    dt: torch.dtype,
+) -> torch.Tensor:  # fmt: skip
+    """Gaussian of the distance (display pixels) from each of the first ``n`` display
+    pixel centres to the nearest render sample along one axis (jitter ``j``)."""
+    s = n_display / n_render
+    u = torch.arange(n, device=dev, dtype=dt).add_(0.5).mul_(1.0 / s).sub_(0.5 + j)
+    d = (u - u.round()).mul_(s)
+    return d.square_().mul_(-0.5 / (sigma * sigma)).exp_()
+
+
+def phase_taps(scale: int, j: float, k: float) -> list[tuple[int, float]]:
+    """For an integer scale, display sub-pixel b of render pixel i lies between samples
+    i + n_b and i + n_b + 1 at fraction f_b (sharpened by k): the (n_b, f_b) per b."""
+    taps = []
+    for b in range(scale):
+        c = (b + 0.5) / scale - 0.5 - j
+        n = math.floor(c)
+        f = min(max((c - n - 0.5) * k, -0.5), 0.5) + 0.5
+        taps.append((n, f))
+    return taps
+
+
+def reconstruct_blocked(
+    x: torch.Tensor, scale: int, jitter: tuple[float, float], k: float, out: torch.Tensor
+) -> torch.Tensor:
+    """Bilinear reconstruction of the jittered (C, h, w) samples at the display pixel
+    centres for an integer scale S, into ``out`` in planar layout (C, S, S, h, w)
+    (display pixel (i S + a, j S + b) at [:, a, b, i, j]): the jitter is uniform, so
+    each sub-pixel phase is a lerp of whole shifted render images."""
+    c, h, w = x.shape
+    # Tap offsets n are -1 or 0 (the jitter is within half a pixel): one replicated
+    # border is enough, shifts are slices.
+    xp = pad1(x)[:, 1:-1]
+    horiz = torch.empty((scale, c, h + 2, w), device=x.device, dtype=x.dtype)
+    for b, (n, f) in enumerate(phase_taps(scale, jitter[0], k)):
+        torch.lerp(xp[..., 1 + n : 1 + n + w], xp[..., 2 + n : 2 + n + w], f, out=horiz[b, :, 1:-1])
+    horiz[:, :, 0] = horiz[:, :, 1]
+    horiz[:, :, -1] = horiz[:, :, -2]
+    for a, (n, f) in enumerate(phase_taps(scale, jitter[1], k)):
+        top, bottom = horiz[:, :, 1 + n : 1 + n + h], horiz[:, :, 2 + n : 2 + n + h]
+        torch.lerp(top, bottom, f, out=out[:, a].transpose(0, 1))
+    return out
+
+
+def nearest_index(n_display: int, n_render: int, dev: torch.device) -> torch.Tensor:
+    """Index of the render pixel whose area holds each display pixel centre."""
+    i = torch.arange(n_display, device=dev, dtype=torch.float64).add_(0.5)
+    return i.mul_(n_render / n_display).floor_().clamp_(0, n_render - 1).long()
