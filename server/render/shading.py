@@ -20,7 +20,7 @@ import torch
 from server.render.rays import RayGrid
 from server.render.scene import Lighting
 from server.render.surfaces import FOOT, LAM, NY, TEX, TINT, GroundSurface, S, U, V
-from server.render.textures import LEVELS, PYRAMID_TEXELS, SIZE, TextureAtlas
+from server.render.textures import LEVEL_OFFSETS, LEVELS, PYRAMID_TEXELS, SIZE, TextureAtlas
 
 LOG2_SIZE = SIZE.bit_length() - 1
 # The sRGB encode is a table lookup on the linear value quantized to this many steps.
@@ -44,43 +44,48 @@ def _pow2(exponent: torch.Tensor) -> torch.Tensor:
     return torch.bitwise_left_shift(exponent + 127, 23).view(torch.float32)
 
 
+@cache
+def _level_offsets(device: str) -> torch.Tensor:
+    """(LEVELS,) int32 texel offset of each mip level inside a pyramid."""
+    return torch.tensor(LEVEL_OFFSETS, dtype=torch.int32, device=device)
+
+
 def sample_texture(
     atlas: TextureAtlas, u: torch.Tensor, v: torch.Tensor, tex: torch.Tensor, foot: torch.Tensor
 ) -> list[torch.Tensor]:
-    """Three planes of linear albedo: bilinear, repeat wrap, per-pixel mip level."""
+    """Three planes of linear albedo: bilinear, repeat wrap, per-pixel mip level.
+
+    Integer texel coordinates wrap with ``& (size - 1)`` (sizes are powers of two,
+    and two's complement makes that a floor-modulo for negative coordinates too);
+    each row of the 2x2 footprint is one gather of a texel pair per channel.
+    """
     shape = u.shape
     u, v, tex, foot = (a.reshape(-1) for a in (u, v, tex, foot))
     level = mip_level(foot)
-    size = _pow2(LOG2_SIZE - level)
-    inv_size = _pow2(level - LOG2_SIZE)
-    # Texel offset of level l in a pyramid: sum_{i<l} 4^(9-i) = (4^10 - 4 size^2) / 3.
-    base = size * size
-    base.mul_(-4.0).add_(float(4 * SIZE * SIZE)).div_(3.0).round_()
-    base.addcmul_(tex, torch.full_like(tex, float(PYRAMID_TEXELS)))
+    shift = torch.neg(level).add_(LOG2_SIZE)  # log2 of the level's size
+    size = _pow2(shift)
+    mask = torch.ones_like(shift).bitwise_left_shift_(shift).sub_(1)
 
-    def axis(c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def axis(c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         x = c * size
         x.sub_(0.5)
         x0 = x.floor()
         frac = x.sub_(x0)
-        # Wrap with floor-division so negative coordinates repeat too.
-        x0.addcmul_(size, (x0 * inv_size).floor_(), value=-1.0)
-        x1 = x0 + 1.0
-        x1.addcmul_(size, torch.ge(x1, size).float(), value=-1.0)
-        return x0, x1, frac
+        return x0.to(torch.int32).bitwise_and_(mask), frac
 
-    x0, x1, fx = axis(u)
-    y0, y1, fy = axis(v)
-    row0 = torch.addcmul(base, y0, size)
-    row1 = torch.addcmul(base, y1, size)
-    last = atlas.planes.shape[1] - 1
-    taps = [(r + c).to(torch.int32).clamp_(0, last) for r in (row0, row1) for c in (x0, x1)]
+    x0, fx = axis(u)
+    y0, fy = axis(v)
+    base = _level_offsets(str(u.device)).index_select(0, level)
+    base.add_(tex.to(torch.int32).mul_(PYRAMID_TEXELS)).add_(x0)
+    y1 = (y0 + 1).bitwise_and_(mask).bitwise_left_shift_(shift).add_(base)
+    y0.bitwise_left_shift_(shift).add_(base)
     out = []
-    for plane in atlas.planes:
-        t00, t01, t10, t11 = (plane.index_select(0, i) for i in taps)
-        top = torch.lerp(t00, t01, fx)
-        bottom = torch.lerp(t10, t11, fx)
-        out.append(top.lerp_(bottom, fy).view(shape))
+    for pairs in atlas.pairs:
+        top = pairs.index_select(0, y0).view(torch.float32).view(-1, 2)
+        bottom = pairs.index_select(0, y1).view(torch.float32).view(-1, 2)
+        row0 = torch.lerp(top[:, 0], top[:, 1], fx)
+        row1 = torch.lerp(bottom[:, 0], bottom[:, 1], fx)
+        out.append(row0.lerp_(row1, fy).view(shape))
     return out
 
 

@@ -122,17 +122,35 @@ def _pyramid(img: torch.Tensor) -> torch.Tensor:
 
 @dataclass(frozen=True)
 class TextureAtlas:
-    # (3, len(names) * PYRAMID_TEXELS) linear RGB, one contiguous plane per channel:
-    # a bilinear tap is a gather per plane straight into the shader's colour planes.
-    planes: torch.Tensor
+    # (3, len(names) * PYRAMID_TEXELS) int64, one plane per channel: texel (x, y) of a
+    # level holds the float32 bits of texel x and of texel (x + 1) mod size of the same
+    # row, so one gather fetches both horizontal taps of a bilinear filter, wrap included.
+    pairs: torch.Tensor
     names: tuple[str, ...]
     level_offsets: torch.Tensor  # (LEVELS,) float: texel offset of each level in a pyramid
     level_sizes: torch.Tensor  # (LEVELS,) float
+
+    @property
+    def planes(self) -> torch.Tensor:
+        """(3, texels) float32 linear RGB (a strided view of ``pairs``)."""
+        return self.pairs.view(torch.float32).view(3, -1, 2)[..., 0]
 
     def index(self, name: str) -> int:
         if name not in self.names:
             raise KeyError(f"unknown texture {name!r}; known: {', '.join(self.names)}")
         return self.names.index(name)
+
+
+def _pairs(planes: torch.Tensor) -> torch.Tensor:
+    """Pair planes (see ``TextureAtlas.pairs``) of (3, n * PYRAMID_TEXELS) channel planes."""
+    pairs = torch.empty(3, planes.shape[1], 2)
+    for t in range(planes.shape[1] // PYRAMID_TEXELS):
+        for size, offset in zip(LEVEL_SIZES, LEVEL_OFFSETS, strict=True):
+            o = t * PYRAMID_TEXELS + offset
+            img = planes[:, o : o + size * size].view(3, size, size)
+            pairs[:, o : o + size * size, 0] = img.reshape(3, -1)
+            pairs[:, o : o + size * size, 1] = img.roll(-1, 2).reshape(3, -1)
+    return pairs.view(torch.int64).view(3, -1)
 
 
 @cache
@@ -141,9 +159,9 @@ def _atlas_cpu() -> TextureAtlas:
     for name in TEXTURE_NAMES:
         img = _load_file(name) if name in SKIMAGE_FILES else _procedural(name)
         parts.append(_pyramid(img))
-    texels = torch.cat(parts)
+    planes = torch.cat(parts).T.contiguous()
     return TextureAtlas(
-        texels.T.contiguous(),
+        _pairs(planes),
         TEXTURE_NAMES,
         torch.tensor(LEVEL_OFFSETS, dtype=torch.float32),
         torch.tensor(LEVEL_SIZES, dtype=torch.float32),
@@ -157,7 +175,7 @@ def texture_atlas(device: str = "cpu") -> TextureAtlas:
     if torch.device(device).type == "cpu":
         return cpu
     return TextureAtlas(
-        cpu.planes.to(device),
+        cpu.pairs.to(device),
         cpu.names,
         cpu.level_offsets.to(device),
         cpu.level_sizes.to(device),
