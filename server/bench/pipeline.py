@@ -29,6 +29,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--display-size", default="1280x720")
     parser.add_argument("--fps", type=float, default=60.0)
     parser.add_argument("--upscaler", default="bilinear")
+    parser.add_argument("--game-threads", type=int, default=1, help="torch threads, game")
+    parser.add_argument("--worker-threads", type=int, default=1, help="torch threads, worker")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -38,6 +40,8 @@ def run(args: argparse.Namespace) -> int:
         display_size=args.display_size,
         fps=args.fps,
         upscaler=args.upscaler,
+        game_threads=args.game_threads,
+        worker_threads=args.worker_threads,
     )
     total = args.warmup + args.duration
     stack = LocalStack(config, game_duration_s=total + 2.0)

@@ -10,6 +10,7 @@ BENCHMARKS: dict[str, str] = {
     "transfer": "ring handoff (READY -> usable views) against a memcpy of the same bytes",
     "pipeline": "game -> worker -> ring U for a while: fps, drops, per-stage latency",
     "render": "reference renderer speed per scene",
+    "framegen": "frame prediction (MPE and baselines): quality against cost per scene",
 }
 
 
