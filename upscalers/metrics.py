@@ -32,7 +32,7 @@ def psnr(reference: U8Image, test: U8Image) -> float:
 
 
 def _gaussian_window(size: int = 11, sigma: float = 1.5) -> torch.Tensor:
-    x = torch.arange(size, dtype=torch.float64) - (size - 1) / 2
+    x = torch.arange(size, dtype=torch.float32) - (size - 1) / 2
     g = torch.exp(-(x * x) / (2 * sigma * sigma))
     return g / g.sum()
 
@@ -41,8 +41,8 @@ def ssim(reference: U8Image, test: U8Image) -> float:
     """Mean SSIM (Wang et al. 2004: 11x11 Gaussian, sigma 1.5, K1 0.01, K2 0.03),
     per channel then averaged, valid region only (no padding artefacts)."""
     _check_pair(reference, test)
-    x = torch.from_numpy(reference).permute(2, 0, 1).unsqueeze(1).to(torch.float64) / 255.0
-    y = torch.from_numpy(test).permute(2, 0, 1).unsqueeze(1).to(torch.float64) / 255.0
+    x = torch.from_numpy(reference).permute(2, 0, 1).unsqueeze(1).to(torch.float32) / 255.0
+    y = torch.from_numpy(test).permute(2, 0, 1).unsqueeze(1).to(torch.float32) / 255.0
     g = _gaussian_window()
     kx = g.view(1, 1, 1, -1)
     ky = g.view(1, 1, -1, 1)

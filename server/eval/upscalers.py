@@ -45,6 +45,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--frames", type=int, default=24, help="frames rendered per scene")
     parser.add_argument("--measure-from", type=int, default=12, help="first measured frame")
     parser.add_argument("--flip-frames", type=int, default=2, help="measured frames with FLIP")
+    parser.add_argument(
+        "--flip-scales", default="2", help="scales that get FLIP (seconds per frame on a CPU)"
+    )
     parser.add_argument("--fps", type=float, default=60.0, help="game time step")
     parser.add_argument("--supersample", type=int, default=3, help="ground truth ss x ss")
     parser.add_argument("--threads", type=int, default=2, help="torch CPU threads")
@@ -97,7 +100,7 @@ def _evaluate_scale(
     truth: dict[int, npt.NDArray[np.uint8]],
     methods: list[str],
     display: Size,
-    flip_from: int,
+    flip_from: int | None,
 ) -> dict[str, CaseResult]:
     hosts = {m: UpscalerHost(m, display) for m in methods}
     results = {m: CaseResult() for m in methods}
@@ -115,7 +118,7 @@ def _evaluate_scale(
             r.psnr.append(metrics.psnr(gt, image))
             r.ssim.append(metrics.ssim(gt, image))
             r.errors.append(metrics.signed_error(gt, image))
-            if i >= flip_from:
+            if flip_from is not None and i >= flip_from:
                 r.flip.append(metrics.flip(gt, image))
     return results
 
@@ -137,6 +140,7 @@ def run(args: argparse.Namespace) -> int:
             "frames": args.frames,
             "measure_from": args.measure_from,
             "flip_frames": args.flip_frames,
+            "flip_scales": args.flip_scales,
             "fps": args.fps,
             "reference": f"game ground truth at {display}, unjittered, "
             f"{args.supersample}x{args.supersample} supersampled",
@@ -145,6 +149,7 @@ def run(args: argparse.Namespace) -> int:
     )
     measured = list(range(args.measure_from, args.frames))
     flip_from = args.frames - min(args.flip_frames, len(measured))
+    flip_scales = {float(x) for x in _csv(args.flip_scales)}
     started = time.monotonic()
     total_steps = len(scenes) * len(scales)
     step = 0
@@ -160,7 +165,10 @@ def run(args: argparse.Namespace) -> int:
             step += 1
             render = Size(round(display.width / scale), round(display.height / scale))
             frames = _render_frames(scene, render, scale, times)
-            results = _evaluate_scale(frames, truth, methods, display, flip_from)
+            with_flip = scale in flip_scales
+            results = _evaluate_scale(
+                frames, truth, methods, display, flip_from if with_flip else None
+            )
             for m, r in results.items():
                 t = summarize_ms(r.times_ms[1:])  # the first call includes allocation
                 report.add_case(
