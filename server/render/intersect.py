@@ -16,6 +16,7 @@ component exactly 0 on a slab boundary) compare false, so they count as misses.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -63,6 +64,15 @@ class DepthPass:
     s: torch.Tensor  # (rows, width) inverse view depth of the nearest hit, 0 = sky
     grounds: list[GroundHits]
     classes: list[ClassHits]
+
+
+def fmask(
+    cmp: Callable[..., torch.Tensor], a: torch.Tensor, b: torch.Tensor | float
+) -> torch.Tensor:
+    """``cmp(a, b)`` as a 0/1 float tensor shaped like ``a``: the comparison writes
+    straight into float storage (bool results, their ``.float()`` and products with
+    them are slow paths on CPU; the values are the same)."""
+    return cmp(a, b, out=torch.empty_like(a))
 
 
 def _ground(setup: FrameSetup, grid: RayGrid, inst: ObjectInstance) -> torch.Tensor | None:
@@ -154,8 +164,8 @@ def _intersect(
         t_in, t_out = _box_t(p, d)
         # Entry point if it is past the near plane, else the exit (camera inside or
         # straddling the box: we see its inner faces, like an unculled rasterizer).
-        t = torch.lerp(t_out, t_in, torch.ge(t_in, near).float())
-        valid = torch.le(t_in, t_out).float().mul_(torch.ge(t, near))
+        t = torch.lerp(t_out, t_in, fmask(torch.ge, t_in, near))
+        valid = fmask(torch.le, t_in, t_out).mul_(fmask(torch.ge, t, near))
         return valid.div_(t)
     o = [p[ORIGIN], p[ORIGIN + 1], p[ORIGIN + 2]]
     if shape is Sphere:
@@ -169,24 +179,24 @@ def _intersect(
         inv_a = a.reciprocal_()
         t0 = (b + sq).mul_(inv_a).neg_()
         t1 = (sq - b).mul_(inv_a)
-        t = torch.lerp(t1, t0, torch.ge(t0, near).float())
-        valid = torch.ge(disc, 0.0).float().mul_(torch.ge(t, near))
+        t = torch.lerp(t1, t0, fmask(torch.ge, t0, near))
+        valid = fmask(torch.ge, disc, 0.0).mul_(fmask(torch.ge, t, near))
         return valid.div_(t)
     # Quad in local z = 0.
     r = COMMON_ROWS
     t = d[2].reciprocal().mul_(o[2]).neg_()
     qx = torch.addcmul(o[0], t, d[0])
     qy = torch.addcmul(o[1], t, d[1])
-    valid = torch.ge(t, near).float()
-    valid.mul_(torch.le(qx.abs(), p[r]))
-    valid.mul_(torch.ge(qy, 0.0)).mul_(torch.le(qy, p[r + 1]))
+    valid = fmask(torch.ge, t, near)
+    valid.mul_(fmask(torch.le, qx.abs(), p[r]))
+    valid.mul_(fmask(torch.ge, qy, 0.0)).mul_(fmask(torch.le, qy, p[r + 1]))
     if bool((p[r + 2] > 0).any()):
         # Fence: vertical bars every bar_spacing plus two rails; point-sampled, so it aliases.
         phase = torch.frac((qx + p[r]).mul_(p[r + 3]))
-        alpha = torch.lt(phase, p[r + 4]).float()
+        alpha = fmask(torch.lt, phase, p[r + 4])
         half_rail = p[r + 7]
-        alpha = torch.maximum(alpha, torch.lt((qy - p[r + 5]).abs_(), half_rail).float())
-        alpha = torch.maximum(alpha, torch.lt((qy - p[r + 6]).abs_(), half_rail).float())
+        alpha = torch.maximum(alpha, fmask(torch.lt, (qy - p[r + 5]).abs_(), half_rail))
+        alpha = torch.maximum(alpha, fmask(torch.lt, (qy - p[r + 6]).abs_(), half_rail))
         # Non-fence quads: alpha 1.
         alpha = torch.maximum(alpha, 1.0 - p[r + 2])
         valid.mul_(alpha)
@@ -212,9 +222,9 @@ def depth_pass(setup: FrameSetup, grid: RayGrid) -> DepthPass:
                 s_ground = sg
             else:
                 # Earlier grounds keep ties; later ones only where strictly nearer.
-                sg.mul_(torch.gt(sg, s_ground))
+                sg.mul_(fmask(torch.gt, sg, s_ground))
                 for g in grounds:
-                    g.s.mul_(torch.ge(g.s, sg))
+                    g.s.mul_(fmask(torch.ge, g.s, sg))
                 s_ground = torch.maximum(s_ground, sg)
             grounds.append(GroundHits(inst, sg))
     if s_ground is None:
@@ -246,7 +256,7 @@ def depth_pass(setup: FrameSetup, grid: RayGrid) -> DepthPass:
         s = _intersect(kind, p, d, setup.near)
         # Only where nearer than the ground (and than far); NaN (a miss) becomes 0.
         ground = flat_ground.index_select(0, pix).clamp_min_(1.0 / setup.far)
-        s.mul_(torch.gt(s, ground)).nan_to_num_(0.0, 0.0, 0.0)
+        s.mul_(fmask(torch.gt, s, ground)).nan_to_num_(0.0, 0.0, 0.0)
         sd[0].copy_(s)
         key = s.view(torch.int32).to(torch.int64).mul_(KEY_ONE).add_(p[KEY].to(torch.int64))
         keys.scatter_reduce_(0, pix, key, "amax")

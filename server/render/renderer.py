@@ -16,7 +16,7 @@ import torch
 
 from server.frame import Camera, F32Array, FrameFlags, FrameMeta, RenderFrame, Size, U8Array
 from server.render.camera import CameraInput, CameraPose, GameCamera, InputState
-from server.render.intersect import depth_pass
+from server.render.intersect import depth_pass, fmask
 from server.render.motion import depth_from_s, object_motion, static_motion
 from server.render.rays import FrameSetup, ObjectInstance, RayGrid, make_grid
 from server.render.scene import Scene
@@ -180,7 +180,7 @@ class Renderer:
             planes = shade_ground(self.atlas, surf, lighting, setup.far)
             # Rows that may hold other pixels (sky, another ground) blend by coverage.
             c0, c1 = (b0, b1) if multi else (max(a0, b0), min(a1, b1))
-            mask = torch.gt(g.s[c0:c1], 0.0).float() if c1 > c0 else None
+            mask = fmask(torch.gt, g.s[c0:c1], 0.0) if c1 > c0 else None
             for ch, plane in enumerate(planes):
                 dst = color[ch, b0:b1]
                 if mask is None:

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from server.render.intersect import ORIGIN, ClassHits, GroundHits
+from server.render.intersect import ORIGIN, ClassHits, GroundHits, fmask
 from server.render.rays import FrameSetup, ObjectInstance, RayGrid
 from server.render.scene import Lighting
 from server.render.shapes import Box, Ground, Material, Quad, Sphere
@@ -102,13 +102,14 @@ def object_surface(
     n = hits.pix.numel()
     device = hits.pix.device
     attr = _attr_table(hits, entries, grid, sun).index_select(1, hits.oid)
-    geo = hits.table.index_select(1, hits.oid)
+    # Only the local ray origin of the class table is needed here.
+    origin = hits.table[ORIGIN : ORIGIN + 3].index_select(1, hits.oid)
     s = hits.sd[0]
     d = [hits.sd[1], hits.sd[2], hits.sd[3]]
     t = s.reciprocal()
     q = torch.empty(3, n, device=device)
     for i in range(3):
-        torch.addcmul(geo[ORIGIN + i], d[i], t, out=q[i])
+        torch.addcmul(origin[i], d[i], t, out=q[i])
     dn = d[0] * d[0]
     dn.addcmul_(d[1], d[1]).addcmul_(d[2], d[2]).sqrt_()
     out = torch.empty(SURFACE_ROWS, n, device=device)
@@ -116,8 +117,8 @@ def object_surface(
     nl: list[torch.Tensor | None]
     if hits.shape is Box:
         a = [q[i].abs().mul_(attr[sh + i]) for i in range(3)]
-        is_x = torch.ge(a[0], a[1]).float().mul_(torch.ge(a[0], a[2]))
-        is_y = torch.gt(a[1], a[0]).float().mul_(torch.ge(a[1], a[2]))
+        is_x = fmask(torch.ge, a[0], a[1]).mul_(fmask(torch.ge, a[0], a[2]))
+        is_y = fmask(torch.gt, a[1], a[0]).mul_(fmask(torch.ge, a[1], a[2]))
         is_z = 1.0 - is_x - is_y
         nl = [is_x * q[0].sign(), is_y * q[1].sign(), is_z.mul_(q[2].sign())]
         zu = q[2] + attr[sh + 5]
@@ -147,7 +148,7 @@ def object_surface(
     else:  # quad: local normal +z
         facing = d[2].clone()
         comps = [(torch.ones(n, device=device), d[2], 2)]
-    flip = torch.gt(facing, 0.0).float().mul_(-2.0).add_(1.0)
+    flip = fmask(torch.gt, facing, 0.0).mul_(-2.0).add_(1.0)
     lam = out[LAM]
     ny = out[NY]
     lam.zero_()
@@ -206,7 +207,7 @@ def ground_surface(
         p = entries[shape.path_material]
         fp = p.footprint_scale(grid.pixel_angle)
         path = [p.texture, 1.0 / p.tile[0], 1.0 / p.tile[1], fp, *p.tint]
-        on_path = torch.lt(qx.abs(), shape.path_half_width).float()
+        on_path = fmask(torch.lt, qx.abs(), shape.path_half_width)
         for dst, a, b in zip(targets, params, path, strict=True):
             torch.mul(on_path, b - a, out=dst).add_(a)
     else:
