@@ -102,14 +102,11 @@ def run(args: argparse.Namespace) -> int:
     from server.bench.report import BenchReport, summarize_ms
     from server.frame import RenderFrame, Size
     from server.render.renderer import Renderer, RenderTargets
-    from server.render.scenes import SCENE_NAMES, SCENES, make_scene
+    from server.render.scenes import SCENES, make_scene, parse_scene_list
     from upscalers import metrics
 
     size = Size.parse(args.size)
-    scenes = list(SCENE_NAMES) if args.scenes == "all" else args.scenes.split(",")
-    unknown = [s for s in scenes if s not in SCENE_NAMES]
-    if unknown:
-        raise SystemExit(f"unknown scene(s) {unknown}; choose from {', '.join(SCENE_NAMES)}")
+    scenes = parse_scene_list(args.scenes)
     tiles = [int(x) for x in args.tiles.split(",") if x]
     if args.threads > 0:
         torch.set_num_threads(args.threads)

@@ -24,13 +24,10 @@ def run(args: argparse.Namespace) -> int:
     from server.bench.report import BenchReport, summarize_ms
     from server.frame import Size
     from server.render.renderer import Renderer, RenderTargets
-    from server.render.scenes import SCENE_NAMES
+    from server.render.scenes import parse_scene_list
 
     size = Size.parse(args.size)
-    scenes = list(SCENE_NAMES) if args.scenes == "all" else args.scenes.split(",")
-    unknown = [s for s in scenes if s not in SCENE_NAMES]
-    if unknown:
-        raise SystemExit(f"unknown scene(s) {unknown}; choose from {', '.join(SCENE_NAMES)}")
+    scenes = parse_scene_list(args.scenes)
     threads = [int(x) for x in args.threads.split(",")]
     report = BenchReport(
         "render",

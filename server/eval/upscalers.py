@@ -26,7 +26,7 @@ import torch
 from server.bench.report import BenchReport, summarize_ms
 from server.frame import RenderFrame, Size
 from server.render.renderer import Renderer, RenderTargets
-from server.render.scenes import SCENE_NAMES, make_scene
+from server.render.scenes import SCENE_NAMES, make_scene, parse_scene_list
 from upscalers import metrics, registry
 from upscalers.host import UpscalerHost
 from upscalers.output import to_uint8
@@ -67,10 +67,7 @@ def _csv(text: str) -> list[str]:
 
 
 def _parse(args: argparse.Namespace) -> tuple[list[str], list[float], list[str], Size]:
-    scenes = _csv(args.scenes)
-    unknown = [s for s in scenes if s not in SCENE_NAMES]
-    if unknown:
-        raise SystemExit(f"unknown scene(s) {unknown}; allowed: {', '.join(SCENE_NAMES)}")
+    scenes = parse_scene_list(args.scenes)
     methods = _csv(args.methods)
     missing = [m for m in methods if m not in registry.available()]
     if missing:

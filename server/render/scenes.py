@@ -197,6 +197,17 @@ SCENES: dict[str, SceneInfo] = {
 SCENE_NAMES: tuple[str, ...] = tuple(SCENES)
 
 
+def parse_scene_list(text: str) -> list[str]:
+    """Scene names from "a,b,c" or "all"; SystemExit naming the allowed ones otherwise."""
+    scenes = (
+        list(SCENE_NAMES) if text == "all" else [s.strip() for s in text.split(",") if s.strip()]
+    )
+    unknown = [s for s in scenes if s not in SCENE_NAMES]
+    if unknown or not scenes:
+        raise SystemExit(f"unknown scene(s) {unknown}; choose from {', '.join(SCENE_NAMES)}")
+    return scenes
+
+
 def make_scene(name: str, seed: int = 0) -> Scene:
     """The scene ``name`` built from ``seed``; KeyError names the allowed scenes."""
     try:
