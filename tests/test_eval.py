@@ -82,7 +82,8 @@ def test_eval_command_writes_report_table_and_plot(tmp_path: Path) -> None:
         ["eval", "upscalers", "--json", str(out), "--plot", str(tmp_path / "p.png"),
          "--table", str(tmp_path / "t.md"), "--scenes", "static,scene_cut", "--scales", "2",
          "--methods", "bilinear,bicubic", "--frames", "5", "--measure-from", "3",
-         "--flip-frames", "1", "--flip-scales", "2", "--display-size", "192x108", "--supersample", "2"]
+         "--flip-frames", "1", "--flip-scales", "2", "--display-size", "192x108",
+         "--supersample", "2"]
     )  # fmt: skip
     assert code == 0
     report = json.loads(out.read_text())
