@@ -48,11 +48,7 @@ class GameLoop:
     def __init__(self, renderer: FrameRenderer, ring: FrameRing, fps: float) -> None:
         if fps <= 0:
             raise ValueError(f"fps must be positive, got {fps}")
-        size = renderer.render_size
-        if size.width > ring.max_width or size.height > ring.max_height:
-            raise ValueError(
-                f"render size {size} exceeds ring R capacity {ring.max_width}x{ring.max_height}"
-            )
+        ring.require_fits(*renderer.render_size, what="render size")
         self.renderer = renderer
         self.ring = ring
         self.fps = fps

@@ -442,6 +442,14 @@ class FrameRing:
     def _slot_offset(self, index: int) -> int:
         return self._slots_offset + index * self._slot_stride
 
+    def require_fits(self, width: int, height: int, what: str) -> None:
+        """Refuse, at start, frames this ring's planes cannot hold."""
+        if width > self.max_width or height > self.max_height:
+            raise ValueError(
+                f"{what} {width}x{height} exceeds ring {self.name!r} capacity "
+                f"{self.max_width}x{self.max_height}"
+            )
+
     def counters(self) -> RingCounters:
         h = self.header
         return RingCounters(

@@ -65,12 +65,7 @@ class UpscaleWorker:
         *,
         newest: bool = False,
     ) -> None:
-        size = host.display_size
-        if size.width > ring_out.max_width or size.height > ring_out.max_height:
-            raise ValueError(
-                f"display size {size} exceeds ring U capacity "
-                f"{ring_out.max_width}x{ring_out.max_height}"
-            )
+        ring_out.require_fits(*host.display_size, what="display size")
         self.ring_in = ring_in
         self.ring_out = ring_out
         self.host = host

@@ -116,22 +116,15 @@ def run(args: argparse.Namespace) -> int:
     for name, planes, size in cases:
         m = _measure(planes, size, args.frames, args.period_ms / 1000)
         h, c = m["handoff"], m["memcpy"]
-        report.add_case(
-            f"{name}_handoff",
-            size=str(size),
-            bytes_per_frame=m["bytes_per_frame"],
-            median_ms=h["median_ms"],
-            p95_ms=h["p95_ms"],
-            stats=h,
-        )
-        report.add_case(
-            f"{name}_memcpy",
-            size=str(size),
-            bytes_per_frame=m["bytes_per_frame"],
-            median_ms=c["median_ms"],
-            p95_ms=c["p95_ms"],
-            stats=c,
-        )
+        for kind, stats in (("handoff", h), ("memcpy", c)):
+            report.add_case(
+                f"{name}_{kind}",
+                size=str(size),
+                bytes_per_frame=m["bytes_per_frame"],
+                median_ms=stats["median_ms"],
+                p95_ms=stats["p95_ms"],
+                stats=stats,
+            )
         report.add_ratio(
             f"{name}_handoff_p95_over_memcpy_p95",
             f"{name}_handoff",
