@@ -96,6 +96,8 @@ class FrameMeta:
     flags: FrameFlags = FrameFlags.NONE
     # (STAGE_COUNT, 2) int64: monotonic ns, wall ns; see server/timing.py
     stamps: I64Array = field(default_factory=new_stamps)
+    # Last player input applied before this frame was rendered (0 = none).
+    input_seq: int = 0
 
 
 @dataclass

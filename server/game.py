@@ -53,20 +53,22 @@ class GameLoop:
         self.ring = ring
         self.fps = fps
         self.stats = GameStats()
-        self._inputs: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self._inputs: queue.SimpleQueue[tuple[Any, int]] = queue.SimpleQueue()
+        self.input_seq = 0  # last applied player input (see FrameMeta.input_seq)
         ring.attach_as_producer()
 
-    def push_input(self, event: Any) -> None:
+    def push_input(self, event: Any, seq: int = 0) -> None:
         """Queue an input event (thread-safe); applied at the start of the next frame."""
-        self._inputs.put(event)
+        self._inputs.put((event, seq))
 
     def _drain_inputs(self) -> None:
         while True:
             try:
-                event = self._inputs.get_nowait()
+                event, seq = self._inputs.get_nowait()
             except queue.Empty:
                 return
             self.renderer.apply_input(event)
+            self.input_seq = max(self.input_seq, seq)
 
     def step(self, frame_index: int) -> bool:
         """Render one frame into ring R. False if no slot came in time (frame dropped)."""
@@ -88,6 +90,7 @@ class GameLoop:
                 log.exception("render of frame %d failed; frame skipped", frame_index)
                 return False
             meta = frame.meta
+            meta.input_seq = self.input_seq
             meta.stamps[Stage.RENDER_START] = render_start
             stamp(meta.stamps, Stage.RENDER_END)
             write_meta(lease.header, meta)

@@ -36,15 +36,18 @@ class InputMessage(BaseModel):
     forward: float = Field(default=0.0, ge=-MAX_MOVE_M, le=MAX_MOVE_M, allow_inf_nan=False)
     right: float = Field(default=0.0, ge=-MAX_MOVE_M, le=MAX_MOVE_M, allow_inf_nan=False)
     up: float = Field(default=0.0, ge=-MAX_MOVE_M, le=MAX_MOVE_M, allow_inf_nan=False)
+    # The sender's sequence number; the game writes the last one it applied into
+    # every frame header (input_seq) so clients can measure input-to-photon latency.
+    seq: int = Field(default=0, ge=0, lt=1 << 62)
 
     def to_event(self) -> CameraInput:
         return CameraInput(self.dyaw_deg, self.dpitch_deg, self.forward, self.right, self.up)
 
 
 class InputReceiver:
-    """Binds ``path`` and hands every valid event to ``sink`` from a daemon thread."""
+    """Binds ``path`` and hands every valid event and its seq to ``sink`` from a daemon thread."""
 
-    def __init__(self, path: Path, sink: Callable[[CameraInput], None]) -> None:
+    def __init__(self, path: Path, sink: Callable[[CameraInput, int], None]) -> None:
         self.path = path
         self.accepted = 0
         self.refused = 0
@@ -68,13 +71,13 @@ class InputReceiver:
             try:
                 if len(data) > MAX_INPUT_BYTES:
                     raise ValueError(f"input datagram of {len(data)} bytes")
-                event = InputMessage.model_validate_json(data).to_event()
+                message = InputMessage.model_validate_json(data)
             except (ValidationError, ValueError) as exc:
                 self.refused += 1
                 log.warning("input refused: %s", str(exc).splitlines()[0])
                 continue
             self.accepted += 1
-            self._sink(event)
+            self._sink(message.to_event(), message.seq)
 
     def close(self) -> None:
         self._stop.set()

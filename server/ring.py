@@ -58,6 +58,9 @@ Slot ``i`` starts at ``slots_offset + i * slot_stride``. Slot header, 1024 bytes
     56   u64       checksum (optional, 0 = none; tests use it)
     64   f32[4][4][4]  view, proj, prev_view, prev_proj (row-major)
     320  i64[14][2]    timing stamps (monotonic ns, wall ns) in server.timing.Stage order
+    544  i64       input_seq: sequence number of the last player input the game applied
+                   before rendering this frame (0 = none); lets a client measure
+                   input-to-photon latency
 
 Planes follow at their table offsets. Each holds ``height * width * channels``
 elements of its dtype, packed row-major (no row padding) for the slot's own
@@ -166,13 +169,13 @@ SLOT_HEADER = np.dtype(
     {
         "names": [
             "state", "owner_pid", "seq", "width", "height", "frame_id", "flags", "jitter",
-            "near", "far", "fov_y_deg", "checksum", "matrices", "stamps",
+            "near", "far", "fov_y_deg", "checksum", "matrices", "stamps", "input_seq",
         ],
         "formats": [
             "<u4", "<i4", "<u8", "<u4", "<u4", "<i8", "<u4", ("<f4", (2,)), "<f4", "<f4", "<f4",
-            "<u8", ("<f4", (4, 4, 4)), ("<i8", (STAGE_COUNT, 2)),
+            "<u8", ("<f4", (4, 4, 4)), ("<i8", (STAGE_COUNT, 2)), "<i8",
         ],
-        "offsets": [0, 4, 8, 16, 20, 24, 32, 36, 44, 48, 52, 56, 64, 320],
+        "offsets": [0, 4, 8, 16, 20, 24, 32, 36, 44, 48, 52, 56, 64, 320, 544],
         "itemsize": SLOT_HEADER_SIZE,
     }
 )  # fmt: skip

@@ -36,6 +36,7 @@ def write_meta(header: SlotHeader, meta: FrameMeta) -> None:
     mats[2] = cam.prev_view
     mats[3] = cam.prev_proj
     header["stamps"] = meta.stamps
+    header["input_seq"] = meta.input_seq
 
 
 def read_meta(header: SlotHeader) -> FrameMeta:
@@ -57,6 +58,7 @@ def read_meta(header: SlotHeader) -> FrameMeta:
         jitter=(float(jitter[0]), float(jitter[1])),
         flags=FrameFlags(int(header["flags"]) & int(FrameFlags.RESET | FrameFlags.PREDICTED)),
         stamps=np.array(header["stamps"], dtype=np.int64),
+        input_seq=int(header["input_seq"]),
     )
 
 

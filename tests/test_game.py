@@ -36,7 +36,8 @@ def test_stamps_are_ordered_and_input_moves_camera(ring_name: str) -> None:
         s = first.meta.stamps[:, 0]
         assert 0 < s[Stage.RENDER_START] <= s[Stage.RENDER_END] <= s[Stage.RING_R_READY]
         view_before = first.meta.camera.view.copy()
-    loop.push_input(CameraInput(dyaw_deg=30.0))
+        assert first.meta.input_seq == 0
+    loop.push_input(CameraInput(dyaw_deg=30.0), seq=7)
     assert loop.step(1)
     lease = ring.acquire_read(1.0)
     assert lease is not None
@@ -45,4 +46,6 @@ def test_stamps_are_ordered_and_input_moves_camera(ring_name: str) -> None:
         # prev_view of the next frame is the view we saw: the motion vectors are continuous
         assert np.allclose(second.meta.camera.prev_view, view_before, atol=1e-6)
         assert not np.allclose(second.meta.camera.view, view_before, atol=1e-3)
+        # the header says which input the frame already shows (input-to-photon latency)
+        assert second.meta.input_seq == 7
     ring.close()

@@ -22,7 +22,7 @@ def _wait(pred: object, timeout: float = 3.0) -> None:
 
 def test_events_arrive_in_order_and_garbage_is_refused(tmp_path: Path) -> None:
     got: list[CameraInput] = []
-    receiver = InputReceiver(tmp_path / "in.sock", got.append)
+    receiver = InputReceiver(tmp_path / "in.sock", lambda event, _seq: got.append(event))
     try:
         send_input(receiver.path, InputMessage(dyaw_deg=5.0))
         sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)

@@ -1,0 +1,219 @@
+"""Frame-rate monitor: rolling fps, frame-interval jitter and per-stage latency.
+
+The session and the relay each keep one. It sees every frame once (its arrival
+time and, where known, its timing record), keeps a sliding window, warns in
+the log when a stage's p95 misses its budget, and mirrors everything into
+Prometheus metrics so an operator's dashboards see the same figures as the
+page's overlay.
+
+Budgets default to what a stream at ``target_fps`` can afford: the render,
+upscale and encode stages each get one frame period (they run in parallel
+processes, so each may take a whole period without lowering the rate); the
+hand-offs and the publish step get a couple of milliseconds.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import deque
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
+
+from server.timing import STAGE_SPANS, span_ms
+
+log = logging.getLogger(__name__)
+
+WINDOW_S = 2.0
+WARN_EVERY_S = 10.0
+# Seconds; covers 0.1 ms hand-offs to half-second stalls.
+LATENCY_BUCKETS = (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.033, 0.05, 0.1, 0.2, 0.5)
+SERVER_SPANS = ("render", "ring_r_handoff", "upscale", "ring_u_handoff", "encode", "publish")
+
+
+def default_budgets_ms(target_fps: float) -> dict[str, float]:
+    period_ms = 1000.0 / target_fps
+    return {
+        "render": period_ms,
+        "ring_r_handoff": 2.0,
+        "upscale": period_ms,
+        "ring_u_handoff": 2.0,
+        "encode": period_ms,
+        "publish": 2.0,
+    }
+
+
+@dataclass(frozen=True)
+class StageFigures:
+    p50_ms: float
+    p95_ms: float
+    count: int
+
+
+@dataclass(frozen=True)
+class MonitorSnapshot:
+    fps: float
+    jitter_ms: float  # standard deviation of the frame interval over the window
+    frames: int
+    dropped: int
+    stages: dict[str, StageFigures] = field(default_factory=dict)
+
+    def as_dict(self) -> dict[str, object]:
+        return {
+            "fps": round(self.fps, 2),
+            "jitter_ms": round(self.jitter_ms, 3),
+            "frames": self.frames,
+            "dropped": self.dropped,
+            "stages": {
+                name: {"p50_ms": round(f.p50_ms, 3), "p95_ms": round(f.p95_ms, 3), "n": f.count}
+                for name, f in self.stages.items()
+            },
+        }
+
+
+class MonitorMetrics:
+    """The Prometheus side of one monitor, in its own registry (or a shared one)."""
+
+    def __init__(self, component: str, registry: CollectorRegistry) -> None:
+        labels = ["component"]
+        self.fps = Gauge("upcast_fps", "Rolling frames per second", labels, registry=registry)
+        self.jitter = Gauge(
+            "upcast_frame_jitter_seconds",
+            "Std-dev of the frame interval",
+            labels,
+            registry=registry,
+        )
+        self.frames = Counter("upcast_frames", "Frames seen", labels, registry=registry)
+        self.dropped = Counter("upcast_dropped_frames", "Frames lost", labels, registry=registry)
+        self.budget_misses = Counter(
+            "upcast_stage_budget_misses",
+            "Windows whose p95 missed the stage budget",
+            [*labels, "stage"],
+            registry=registry,
+        )
+        self.stage = Histogram(
+            "upcast_stage_latency_seconds",
+            "Latency of each pipeline stage (server/timing.py defines the boundaries)",
+            [*labels, "stage"],
+            buckets=LATENCY_BUCKETS,
+            registry=registry,
+        )
+        self.component = component
+
+
+class FrameRateMonitor:
+    """Rolling figures over the last ``window_s`` seconds of frames."""
+
+    def __init__(
+        self,
+        component: str,
+        target_fps: float,
+        *,
+        registry: CollectorRegistry | None = None,
+        budgets_ms: Mapping[str, float] | None = None,
+        window_s: float = WINDOW_S,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        if target_fps <= 0:
+            raise ValueError(f"target_fps must be positive, got {target_fps}")
+        self.component = component
+        self.target_fps = target_fps
+        self.window_s = window_s
+        self.budgets_ms = dict(budgets_ms or default_budgets_ms(target_fps))
+        self._clock = clock
+        self._arrivals: deque[float] = deque()
+        self._stages: dict[str, deque[tuple[float, float]]] = {}
+        self._last_warn: dict[str, float] = {}
+        self.frames = 0
+        self.dropped = 0
+        self.metrics = MonitorMetrics(component, registry) if registry is not None else None
+
+    def frame(self, stamps: npt.NDArray[np.int64] | None = None, *, dropped: int = 0) -> None:
+        """Record one frame (its timing record, if any) and frames lost before it."""
+        now = self._clock()
+        self.frames += 1
+        self.dropped += dropped
+        self._arrivals.append(now)
+        m = self.metrics
+        if m is not None:
+            m.frames.labels(m.component).inc()
+            if dropped:
+                m.dropped.labels(m.component).inc(dropped)
+        if stamps is not None:
+            for name, start, end in STAGE_SPANS:
+                ms = span_ms(stamps, start, end)
+                if ms is None or ms < 0:
+                    continue
+                self.record_stage(name, ms, now=now)
+        self._trim(now)
+
+    def record_stage(self, name: str, ms: float, *, now: float | None = None) -> None:
+        """Record a stage latency measured elsewhere (the relay's relay stage, say)."""
+        now = self._clock() if now is None else now
+        self._stages.setdefault(name, deque()).append((now, ms))
+        if self.metrics is not None:
+            self.metrics.stage.labels(self.metrics.component, name).observe(ms / 1000.0)
+
+    def _trim(self, now: float) -> None:
+        horizon = now - self.window_s
+        while self._arrivals and self._arrivals[0] < horizon:
+            self._arrivals.popleft()
+        for samples in self._stages.values():
+            while samples and samples[0][0] < horizon:
+                samples.popleft()
+
+    def snapshot(self) -> MonitorSnapshot:
+        now = self._clock()
+        self._trim(now)
+        arrivals = np.fromiter(self._arrivals, dtype=np.float64)
+        fps = 0.0
+        jitter_ms = 0.0
+        if arrivals.size >= 2:
+            span = arrivals[-1] - arrivals[0]
+            fps = (arrivals.size - 1) / span if span > 0 else 0.0
+            jitter_ms = float(np.std(np.diff(arrivals)) * 1000.0)
+        stages: dict[str, StageFigures] = {}
+        for name, samples in self._stages.items():
+            if not samples:
+                continue
+            values = np.fromiter((ms for _, ms in samples), dtype=np.float64)
+            p50, p95 = np.percentile(values, [50, 95])
+            stages[name] = StageFigures(float(p50), float(p95), int(values.size))
+        snap = MonitorSnapshot(fps, jitter_ms, self.frames, self.dropped, stages)
+        if self.metrics is not None:
+            self.metrics.fps.labels(self.component).set(fps)
+            self.metrics.jitter.labels(self.component).set(jitter_ms / 1000.0)
+        return snap
+
+    def check_budgets(self) -> list[str]:
+        """Warn (rate-limited per stage) about stages whose p95 is over budget."""
+        snap = self.snapshot()
+        now = self._clock()
+        missed: list[str] = []
+        # A full window below 90 % of the target rate is a missed frame budget too.
+        if len(self._arrivals) >= 2 and 0 < snap.fps < 0.9 * self.target_fps:
+            missed.append("fps")
+            if now - self._last_warn.get("fps", -WARN_EVERY_S) >= WARN_EVERY_S:
+                self._last_warn["fps"] = now
+                log.warning(
+                    "%s: %.1f fps is below 90%% of the %.0f fps target (jitter %.1f ms)",
+                    self.component, snap.fps, self.target_fps, snap.jitter_ms,
+                )  # fmt: skip
+        for name, budget in self.budgets_ms.items():
+            figures = snap.stages.get(name)
+            if figures is None or figures.p95_ms <= budget:
+                continue
+            missed.append(name)
+            if self.metrics is not None:
+                self.metrics.budget_misses.labels(self.component, name).inc()
+            if now - self._last_warn.get(name, -WARN_EVERY_S) >= WARN_EVERY_S:
+                self._last_warn[name] = now
+                log.warning(
+                    "%s: stage %s p95 %.1f ms is over its %.1f ms budget (p50 %.1f ms, %.1f fps)",
+                    self.component, name, figures.p95_ms, budget, figures.p50_ms, snap.fps,
+                )  # fmt: skip
+        return missed

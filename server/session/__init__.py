@@ -1,0 +1,1 @@
+"""The streaming session: ring U -> encoder -> moq-lite broadcast, inputs back to the game."""

@@ -1,0 +1,127 @@
+"""What a browser sends on its ``input`` track, validated, and how it reaches the game.
+
+The browser publishes its own broadcast (``<broadcast>/input/<id>``) with one
+track, ``input``, whose frames are JSON objects with a ``type`` (see
+``ViewerMessage``). Inputs ride MoQ rather than a side channel so they go
+through any moq-lite relay a provider puts in front (issue 7's scale-out),
+with the same authentication and limits as everything else.
+
+Held keys are state, not events: the page sends the set of keys held when it
+changes; ``HeldKeys`` turns that into one movement step per game frame, so the
+camera moves at the same speed whatever the network does with the messages.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
+
+from server.game_input import MAX_LOOK_DEG, InputMessage
+
+MAX_MESSAGE_BYTES = 2048
+LOOK_DEG_PER_PX = 0.2  # drag right by 5 px: turn right by 1 degree
+MOVE_SPEED_M_S = 3.0
+MAX_KEYS = 16
+
+# Browser key names (KeyboardEvent.key, lower-cased) -> (forward, right, up) direction.
+KEY_DIRECTIONS: dict[str, tuple[float, float, float]] = {
+    "w": (1, 0, 0), "arrowup": (1, 0, 0),
+    "s": (-1, 0, 0), "arrowdown": (-1, 0, 0),
+    "a": (0, -1, 0), "arrowleft": (0, -1, 0),
+    "d": (0, 1, 0), "arrowright": (0, 1, 0),
+    " ": (0, 0, 1), "space": (0, 0, 1),
+    "c": (0, 0, -1),
+}  # fmt: skip
+
+
+class _Base(BaseModel):
+    model_config = ConfigDict(extra="ignore")  # pages may add debug fields
+
+    seq: int = Field(default=0, ge=0, lt=1 << 53)
+    sent_ms: float | None = Field(default=None, allow_inf_nan=False)
+
+
+class LookMessage(_Base):
+    type: Literal["look"]
+    dx: float = Field(ge=-10_000, le=10_000, allow_inf_nan=False)
+    dy: float = Field(ge=-10_000, le=10_000, allow_inf_nan=False)
+
+
+class KeysMessage(_Base):
+    type: Literal["keys"]
+    down: list[Annotated[str, Field(max_length=16)]] = Field(max_length=MAX_KEYS)
+
+
+class ControlMessage(_Base):
+    type: Literal["control"]
+    upscaler: str | None = Field(default=None, max_length=64)
+    scale: float | None = Field(default=None, ge=1.0, le=4.0, allow_inf_nan=False)
+
+
+class KeyframeMessage(_Base):
+    type: Literal["keyframe"]
+
+
+ViewerMessage = Annotated[
+    LookMessage | KeysMessage | ControlMessage | KeyframeMessage, Field(discriminator="type")
+]
+_VIEWER_MESSAGE: TypeAdapter[ViewerMessage] = TypeAdapter(ViewerMessage)
+
+
+class BadViewerMessage(ValueError):
+    """A frame on an input track that is not a valid viewer message."""
+
+
+def parse_viewer_message(payload: bytes) -> ViewerMessage:
+    if len(payload) > MAX_MESSAGE_BYTES:
+        raise BadViewerMessage(f"input frame of {len(payload)} bytes > {MAX_MESSAGE_BYTES}")
+    try:
+        return _VIEWER_MESSAGE.validate_json(payload)
+    except ValidationError as exc:
+        first = exc.errors(include_url=False)[0]
+        where = ".".join(str(p) for p in first["loc"]) or "message"
+        raise BadViewerMessage(f"bad input frame: {where}: {first['msg']}") from None
+
+
+def look_input(message: LookMessage) -> InputMessage:
+    """Mouse drag in pixels -> camera turn in degrees (drag right turns right)."""
+
+    def clamp(v: float) -> float:
+        return max(-MAX_LOOK_DEG, min(MAX_LOOK_DEG, v))
+
+    return InputMessage(
+        dyaw_deg=clamp(-message.dx * LOOK_DEG_PER_PX),
+        dpitch_deg=clamp(-message.dy * LOOK_DEG_PER_PX),
+        seq=message.seq,
+    )
+
+
+class HeldKeys:
+    """The keys a viewer holds, turned into one movement step per game frame."""
+
+    def __init__(self, speed_m_s: float = MOVE_SPEED_M_S) -> None:
+        self.speed_m_s = speed_m_s
+        self.direction = (0.0, 0.0, 0.0)
+        self.seq = 0
+
+    def update(self, message: KeysMessage) -> None:
+        f = r = u = 0.0
+        for key in message.down:
+            df, dr, du = KEY_DIRECTIONS.get(key.lower(), (0, 0, 0))
+            f, r, u = f + df, r + dr, u + du
+        clamp = lambda v: max(-1.0, min(1.0, v))  # noqa: E731 - opposite keys cancel
+        self.direction = (clamp(f), clamp(r), clamp(u))
+        self.seq = max(self.seq, message.seq)
+
+    @property
+    def moving(self) -> bool:
+        return self.direction != (0.0, 0.0, 0.0)
+
+    def step(self, dt_s: float) -> InputMessage | None:
+        """The move for ``dt_s`` seconds of holding, or None when nothing is held."""
+        if not self.moving:
+            return None
+        distance = self.speed_m_s * min(dt_s, 0.1)  # a stalled tick never teleports
+        f, r, u = self.direction
+        return InputMessage(forward=f * distance, right=r * distance, up=u * distance, seq=self.seq)

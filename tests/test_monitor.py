@@ -1,0 +1,87 @@
+"""Frame-rate monitor: fps, jitter, stage percentiles, budget warnings, Prometheus."""
+
+from __future__ import annotations
+
+import logging
+
+import pytest
+from prometheus_client import CollectorRegistry, generate_latest
+
+from server.monitor import FrameRateMonitor
+from server.timing import Stage, new_stamps
+
+
+class FakeClock:
+    def __init__(self) -> None:
+        self.t = 100.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def _stamps(render_ms: float, upscale_ms: float) -> object:
+    s = new_stamps()
+    t0 = 1_000_000_000
+    s[Stage.RENDER_START, 0] = t0
+    s[Stage.RENDER_END, 0] = t0 + int(render_ms * 1e6)
+    s[Stage.UPSCALE_START, 0] = t0 + int(render_ms * 1e6) + 100_000
+    s[Stage.UPSCALE_END, 0] = s[Stage.UPSCALE_START, 0] + int(upscale_ms * 1e6)
+    return s
+
+
+def test_fps_and_jitter_follow_the_frame_times() -> None:
+    clock = FakeClock()
+    mon = FrameRateMonitor("session", 30.0, clock=clock, window_s=2.0)
+    for i in range(60):
+        clock.t = 100.0 + i / 30.0
+        mon.frame()
+    snap = mon.snapshot()
+    assert snap.fps == pytest.approx(30.0, rel=1e-6)
+    assert snap.jitter_ms == pytest.approx(0.0, abs=1e-6)
+    # Alternating 20 ms / 46.7 ms intervals: same 30 fps on average, visible jitter.
+    mon2 = FrameRateMonitor("session", 30.0, clock=clock, window_s=10.0)
+    t = 200.0
+    for i in range(60):
+        t += 0.020 if i % 2 else 0.0467
+        clock.t = t
+        mon2.frame()
+    assert mon2.snapshot().jitter_ms == pytest.approx(13.35, abs=0.2)
+
+
+def test_window_forgets_old_frames() -> None:
+    clock = FakeClock()
+    mon = FrameRateMonitor("relay", 60.0, clock=clock, window_s=1.0)
+    for i in range(10):
+        clock.t = 100.0 + i * 0.01
+        mon.frame()
+    clock.t = 105.0
+    assert mon.snapshot().fps == 0.0
+    assert mon.frames == 10
+
+
+def test_stage_percentiles_and_budget_warning(caplog: pytest.LogCaptureFixture) -> None:
+    clock = FakeClock()
+    registry = CollectorRegistry()
+    mon = FrameRateMonitor("session", 60.0, clock=clock, registry=registry)
+    for i in range(40):
+        clock.t = 100.0 + i / 60.0
+        mon.frame(_stamps(render_ms=10.0, upscale_ms=30.0 if i % 2 else 5.0), dropped=i % 10 == 0)  # type: ignore[arg-type]
+    snap = mon.snapshot()
+    assert snap.stages["render"].p50_ms == pytest.approx(10.0)
+    assert snap.stages["upscale"].p95_ms == pytest.approx(30.0)
+    assert snap.dropped == 4
+    with caplog.at_level(logging.WARNING):
+        missed = mon.check_budgets()
+        again = mon.check_budgets()
+    assert missed == ["upscale"] == again  # 30 ms > one 60 fps period; render is fine
+    assert sum("upscale" in r.message for r in caplog.records) == 1  # rate-limited
+    text = generate_latest(registry).decode()
+    assert 'upcast_frames_total{component="session"} 40.0' in text
+    assert 'upcast_dropped_frames_total{component="session"} 4.0' in text
+    assert 'upcast_stage_latency_seconds_count{component="session",stage="render"} 40.0' in text
+    assert 'upcast_stage_budget_misses_total{component="session",stage="upscale"} 2.0' in text
+
+
+def test_bad_target_is_refused() -> None:
+    with pytest.raises(ValueError, match="target_fps"):
+        FrameRateMonitor("x", 0.0)
