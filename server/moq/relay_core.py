@@ -1,0 +1,495 @@
+"""Transport-agnostic moq-lite relay: learns broadcasts, fans groups out, skips slow viewers.
+
+The adapter owns the MoqSessions (it knows how to open streams); the core reacts to their
+events and drives them with commands. After feeding a session, the adapter calls
+`handle(conn_id)` and then flushes `take_transmit()` of every connection id returned (the
+core writes to *other* sessions: viewers of a publisher's frames). `poll()` is called on a
+timer for the slow-viewer check.
+
+Choices (and why):
+- ONE upstream subscription per (broadcast, track), shared by all viewers; dropped when the
+  last viewer leaves, so a publisher only sends what someone watches.
+- The latest group's frames are cached (bounded by `max_group_cache_bytes`) so a new viewer
+  starts at once from that group's first frame (a keyframe), then continues live.
+- A viewer whose group stream backlog passes `max_backlog_bytes`, or whose oldest unsent
+  frame is older than its max latency, gets that group reset (ErrorCode.SKIPPED) and joins
+  the next group at its start: frames inside a group depend on its keyframe, so a group is
+  the smallest unit that can be skipped. Nothing is buffered without bound.
+- Publisher leaves: its broadcasts are announced inactive and viewer subscriptions are
+  ended (FIN). Viewers re-subscribe when the broadcast is announced again. We do not keep
+  viewers attached across publishers: a new publisher restarts group sequences, and an
+  ordered @moq/lite consumer would silently drop the "older" groups.
+- Broadcast owner: the latest announcer wins, so a publisher that reconnects before its old
+  connection times out takes over at once.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from collections.abc import Callable, Hashable
+from dataclasses import dataclass, field
+
+from .errors import ErrorCode
+from .events import (
+    AnnounceReceived,
+    AnnouncesEnded,
+    FrameReceived,
+    GroupCancelled,
+    GroupClosed,
+    GroupOpened,
+    SessionError,
+    SubscribeAccepted,
+    SubscribeCancelled,
+    SubscribeClosed,
+    SubscribeRequested,
+    SubscribeUpdated,
+)
+from .session import MoqSession
+
+ConnId = Hashable
+TrackKey = tuple[str, str]  # (broadcast path, track name)
+ViewerKey = tuple[ConnId, int]  # (viewer connection, its request id)
+
+
+@dataclass(slots=True)
+class ConnStats:
+    """Per-connection counters for metrics (payload bytes, not wire bytes)."""
+
+    frames_in: int = 0
+    bytes_in: int = 0
+    frames_out: int = 0
+    bytes_out: int = 0
+    groups_skipped: int = 0
+
+
+@dataclass(slots=True)
+class _Conn:
+    session: MoqSession
+    interest: int
+    stats: ConnStats = field(default_factory=ConnStats)
+    broadcasts: set[str] = field(default_factory=set)
+    upstream: dict[int, TrackKey] = field(default_factory=dict)  # our subscription id
+
+
+@dataclass(slots=True)
+class _Group:
+    sequence: int
+    frames: list[bytes] = field(default_factory=list)
+    cached_bytes: int = 0
+    cacheable: bool = True
+    done: bool = False
+    complete: bool = False
+
+
+@dataclass(slots=True)
+class _Out:
+    """One viewer's copy of one group: a downstream uni stream."""
+
+    stream_id: int
+    written: int = 0
+    marks: deque[tuple[int, float]] = field(default_factory=deque)  # (end offset, time)
+
+
+@dataclass(slots=True)
+class _Viewer:
+    conn: ConnId
+    request_id: int
+    max_latency_s: float | None
+    accepted: bool = False
+    outs: dict[int, _Out] = field(default_factory=dict)  # upstream group stream -> out
+
+
+@dataclass(slots=True)
+class _Track:
+    key: TrackKey
+    publisher: ConnId
+    subscription_id: int
+    accepted: bool = False
+    groups: dict[int, _Group] = field(default_factory=dict)  # upstream group stream -> group
+    latest: int | None = None  # upstream stream of the newest group
+    viewers: dict[ViewerKey, _Viewer] = field(default_factory=dict)
+
+
+class RelayCore:
+    def __init__(
+        self,
+        buffered_bytes: Callable[[ConnId, int], int],
+        *,
+        clock: Callable[[], float] = time.monotonic,
+        max_backlog_bytes: int = 2 * 1024 * 1024,
+        default_max_latency_s: float | None = None,
+        max_group_cache_bytes: int = 32 * 1024 * 1024,
+    ) -> None:
+        self._buffered_bytes = buffered_bytes
+        self._clock = clock
+        self.max_backlog_bytes = max_backlog_bytes
+        self.default_max_latency_s = default_max_latency_s
+        self.max_group_cache_bytes = max_group_cache_bytes
+        self._conns: dict[ConnId, _Conn] = {}
+        self._owners: dict[str, ConnId] = {}  # broadcast path -> publishing connection
+        self._hops: dict[str, int] = {}
+        self._tracks: dict[TrackKey, _Track] = {}
+        self._touched: set[ConnId] = set()
+
+    # ------------------------------------------------------------------ adapter API
+
+    def add_connection(self, conn_id: ConnId, session: MoqSession) -> set[ConnId]:
+        """Register a session: ask it for its broadcasts, offer it everyone else's."""
+        interest = session.request_announces("")
+        self._conns[conn_id] = _Conn(session, interest)
+        for path, owner in self._owners.items():
+            if owner != conn_id:
+                session.publish(path, self._hops[path])
+        self._touched.add(conn_id)
+        return self._take_touched()
+
+    def remove_connection(self, conn_id: ConnId) -> set[ConnId]:
+        """The connection is gone (closed, timed out, protocol error). Idempotent."""
+        conn = self._conns.pop(conn_id, None)
+        if conn is not None:
+            for path in list(conn.broadcasts):
+                self._withdraw(path)
+            for track in list(self._tracks.values()):
+                if track.publisher == conn_id:
+                    self._end_track(track, ErrorCode.GONE)
+                    continue
+                for key in [k for k in track.viewers if k[0] == conn_id]:
+                    self._remove_viewer(track, key)
+        self._touched.discard(conn_id)
+        return self._take_touched()
+
+    def handle(self, conn_id: ConnId) -> set[ConnId]:
+        """Drain and act on the events of one session; returns connections to flush.
+
+        The result always contains `conn_id` itself, even when a protocol error removed it:
+        its CloseSession transmit still has to go out.
+        """
+        conn = self._conns.get(conn_id)
+        if conn is not None:
+            for event in conn.session.take_events():
+                if conn_id not in self._conns:
+                    break  # removed by an earlier event (session error)
+                self._dispatch(conn_id, conn, event)
+        touched = self._take_touched()
+        touched.add(conn_id)
+        return touched
+
+    def poll(self) -> set[ConnId]:
+        """Periodic slow-viewer check for viewers whose publisher is quiet."""
+        now = self._clock()
+        for track in list(self._tracks.values()):
+            for viewer in list(track.viewers.values()):
+                for upstream, out in list(viewer.outs.items()):
+                    if self._lagging(viewer, out, now):
+                        self._skip(viewer, upstream)
+        return self._take_touched()
+
+    def stats(self, conn_id: ConnId) -> ConnStats | None:
+        conn = self._conns.get(conn_id)
+        return None if conn is None else conn.stats
+
+    @property
+    def broadcasts(self) -> dict[str, ConnId]:
+        return dict(self._owners)
+
+    def viewer_count(self, broadcast: str, track: str) -> int:
+        found = self._tracks.get((broadcast, track))
+        return 0 if found is None else len(found.viewers)
+
+    # -------------------------------------------------------------------- dispatch
+
+    def _dispatch(self, conn_id: ConnId, conn: _Conn, event: object) -> None:
+        if isinstance(event, FrameReceived):
+            self._on_frame(conn, event)
+        elif isinstance(event, GroupOpened):
+            self._on_group_opened(conn, event)
+        elif isinstance(event, GroupClosed):
+            self._on_group_closed(conn, event)
+        elif isinstance(event, AnnounceReceived):
+            if event.handle == conn.interest:
+                self._on_announce(conn_id, event)
+        elif isinstance(event, AnnouncesEnded):
+            if event.handle == conn.interest:
+                for path in list(conn.broadcasts):
+                    self._withdraw(path)
+        elif isinstance(event, SubscribeRequested):
+            self._on_viewer_subscribe(conn_id, conn, event)
+        elif isinstance(event, SubscribeCancelled):
+            self._on_viewer_cancel(conn_id, event.request_id)
+        elif isinstance(event, SubscribeUpdated):
+            viewer = self._find_viewer(conn_id, event.request_id)
+            if viewer is not None:
+                viewer.max_latency_s = self._latency(event.max_latency_ms)
+        elif isinstance(event, GroupCancelled):
+            viewer = self._find_viewer(conn_id, event.request_id)
+            if viewer is not None:
+                for upstream, out in list(viewer.outs.items()):
+                    if out.stream_id == event.stream_id:
+                        del viewer.outs[upstream]
+        elif isinstance(event, SubscribeAccepted):
+            track = self._upstream_track(conn, event.subscription_id)
+            if track is not None:
+                track.accepted = True
+                for viewer in list(track.viewers.values()):
+                    self._start_viewer(track, viewer)
+        elif isinstance(event, SubscribeClosed):
+            track = self._upstream_track(conn, event.subscription_id)
+            if track is not None:
+                code = ErrorCode.NOT_FOUND if not event.accepted else ErrorCode.GONE
+                self._end_track(track, code)
+        elif isinstance(event, SessionError):
+            self.remove_connection(conn_id)
+        # AnnounceInterestReceived: the session answers from its published set.
+        # SubscribeDropped, GoawayReceived: nothing to do for a relay.
+
+    # ----------------------------------------------------------------- announces
+
+    def _on_announce(self, conn_id: ConnId, event: AnnounceReceived) -> None:
+        path = event.path
+        owner = self._owners.get(path)
+        if not event.active:
+            if owner == conn_id:
+                self._withdraw(path)
+            return
+        if owner == conn_id:
+            return
+        if owner is not None:
+            self._withdraw(path)  # a new publisher takes over
+        self._owners[path] = conn_id
+        self._hops[path] = event.hop_count + 1
+        self._conns[conn_id].broadcasts.add(path)
+        for other_id, other in self._conns.items():
+            if other_id != conn_id:
+                other.session.publish(path, event.hop_count + 1)
+                self._touched.add(other_id)
+
+    def _withdraw(self, path: str) -> None:
+        owner = self._owners.pop(path, None)
+        self._hops.pop(path, None)
+        if owner is None:
+            return
+        owner_conn = self._conns.get(owner)
+        if owner_conn is not None:
+            owner_conn.broadcasts.discard(path)
+        for other_id, other in self._conns.items():
+            if other_id != owner:
+                other.session.unpublish(path)
+                self._touched.add(other_id)
+        for track in [t for t in self._tracks.values() if t.key[0] == path]:
+            self._end_track(track, ErrorCode.GONE)
+
+    # ------------------------------------------------------------- subscriptions
+
+    def _on_viewer_subscribe(self, conn_id: ConnId, conn: _Conn, e: SubscribeRequested) -> None:
+        self._touched.add(conn_id)
+        owner = self._owners.get(e.broadcast)
+        # A closed publisher session has a SessionError waiting to be handled: treat as gone.
+        if owner is None or owner == conn_id or self._conns[owner].session.closed:
+            conn.session.reject_subscribe(e.request_id, ErrorCode.NOT_FOUND)
+            return
+        key = (e.broadcast, e.track)
+        track = self._tracks.get(key)
+        if track is None:
+            publisher = self._conns[owner]
+            subscription_id = publisher.session.subscribe(e.broadcast, e.track, priority=e.priority)
+            publisher.upstream[subscription_id] = key
+            track = _Track(key, owner, subscription_id)
+            self._tracks[key] = track
+            self._touched.add(owner)
+        viewer = _Viewer(conn_id, e.request_id, self._latency(e.max_latency_ms))
+        track.viewers[(conn_id, e.request_id)] = viewer
+        if track.accepted:
+            self._start_viewer(track, viewer)
+
+    def _on_viewer_cancel(self, conn_id: ConnId, request_id: int) -> None:
+        for track in list(self._tracks.values()):
+            if (conn_id, request_id) in track.viewers:
+                self._remove_viewer(track, (conn_id, request_id))
+                return
+
+    def _start_viewer(self, track: _Track, viewer: _Viewer) -> None:
+        """Accept a viewer and replay the cached latest group, if any."""
+        if viewer.accepted:
+            return
+        session = self._conns[viewer.conn].session
+        viewer.accepted = session.accept_subscribe(viewer.request_id)
+        self._touched.add(viewer.conn)
+        if track.latest is None:
+            return
+        group = track.groups[track.latest]
+        if not group.cacheable or (group.done and not group.complete):
+            return  # joins at the next group's start
+        out = self._open_out(track, viewer, track.latest, group)
+        if out is None:
+            return
+        for payload in group.frames:
+            self._write(viewer, out, payload)
+        if group.done:
+            session.finish_group(out.stream_id)
+            del viewer.outs[track.latest]
+
+    def _remove_viewer(self, track: _Track, key: ViewerKey) -> None:
+        viewer = track.viewers.pop(key)
+        conn = self._conns.get(viewer.conn)
+        if conn is not None:
+            for out in viewer.outs.values():
+                conn.session.abort_group(out.stream_id, ErrorCode.CANCEL)
+            self._touched.add(viewer.conn)
+        if not track.viewers:
+            self._end_track(track, ErrorCode.CANCEL)
+
+    def _end_track(self, track: _Track, code: ErrorCode) -> None:
+        """Drop a track: unsubscribe upstream, end (or refuse) every viewer's subscription."""
+        if self._tracks.get(track.key) is not track:
+            return
+        del self._tracks[track.key]
+        publisher = self._conns.get(track.publisher)
+        if publisher is not None:
+            publisher.upstream.pop(track.subscription_id, None)
+            publisher.session.unsubscribe(track.subscription_id)
+            self._touched.add(track.publisher)
+        for viewer in track.viewers.values():
+            conn = self._conns.get(viewer.conn)
+            if conn is None:
+                continue
+            self._touched.add(viewer.conn)
+            for out in viewer.outs.values():
+                conn.session.abort_group(out.stream_id, code)
+            if viewer.accepted:
+                conn.session.end_subscription(viewer.request_id)
+            else:
+                conn.session.reject_subscribe(viewer.request_id, code)
+        track.viewers.clear()
+
+    # -------------------------------------------------------------------- groups
+
+    def _on_group_opened(self, conn: _Conn, e: GroupOpened) -> None:
+        track = self._upstream_track(conn, e.subscription_id)
+        if track is None:
+            return
+        group = _Group(e.sequence)
+        track.groups[e.stream_id] = group
+        latest = None if track.latest is None else track.groups.get(track.latest)
+        if latest is not None and latest.sequence > e.sequence:
+            group.cacheable = False  # a late, older group: nobody new starts there
+            return
+        if latest is not None and track.latest is not None and latest.done:
+            del track.groups[track.latest]
+        elif latest is not None:
+            latest.frames.clear()
+            latest.cacheable = False
+        track.latest = e.stream_id
+        now = self._clock()
+        for viewer in list(track.viewers.values()):
+            if not viewer.accepted:
+                continue
+            for upstream, out in list(viewer.outs.items()):
+                if self._lagging(viewer, out, now):
+                    self._skip(viewer, upstream)
+            self._open_out(track, viewer, e.stream_id, group)
+
+    def _on_frame(self, conn: _Conn, e: FrameReceived) -> None:
+        conn.stats.frames_in += 1
+        conn.stats.bytes_in += len(e.payload)
+        track = self._upstream_track(conn, e.subscription_id)
+        group = None if track is None else track.groups.get(e.stream_id)
+        if track is None or group is None:
+            return
+        if group.cacheable:
+            group.frames.append(e.payload)
+            group.cached_bytes += len(e.payload)
+            if group.cached_bytes > self.max_group_cache_bytes:
+                group.frames.clear()  # new viewers wait for the next group instead
+                group.cacheable = False
+        now = self._clock()
+        for viewer in list(track.viewers.values()):
+            out = viewer.outs.get(e.stream_id)
+            if out is None:
+                continue
+            if self._lagging(viewer, out, now):
+                self._skip(viewer, e.stream_id)
+            else:
+                self._write(viewer, out, e.payload)
+
+    def _on_group_closed(self, conn: _Conn, e: GroupClosed) -> None:
+        track = self._upstream_track(conn, e.subscription_id)
+        group = None if track is None else track.groups.get(e.stream_id)
+        if track is None or group is None:
+            return
+        group.done = True
+        group.complete = e.complete
+        for viewer in track.viewers.values():
+            out = viewer.outs.pop(e.stream_id, None)
+            if out is None:
+                continue
+            session = self._conns[viewer.conn].session
+            if e.complete:
+                session.finish_group(out.stream_id)
+            else:
+                session.abort_group(out.stream_id, e.error_code or ErrorCode.CANCEL)
+            self._touched.add(viewer.conn)
+        if track.latest != e.stream_id:
+            del track.groups[e.stream_id]
+
+    def _open_out(
+        self, track: _Track, viewer: _Viewer, upstream: int, group: _Group
+    ) -> _Out | None:
+        session = self._conns[viewer.conn].session
+        stream_id = session.open_group(viewer.request_id, group.sequence)
+        self._touched.add(viewer.conn)
+        if stream_id is None:
+            return None
+        out = _Out(stream_id)
+        viewer.outs[upstream] = out
+        return out
+
+    def _write(self, viewer: _Viewer, out: _Out, payload: bytes) -> None:
+        conn = self._conns[viewer.conn]
+        if conn.session.write_frame(out.stream_id, payload):
+            out.written += len(payload)
+            out.marks.append((out.written, self._clock()))
+            conn.stats.frames_out += 1
+            conn.stats.bytes_out += len(payload)
+            self._touched.add(viewer.conn)
+
+    def _lagging(self, viewer: _Viewer, out: _Out, now: float) -> bool:
+        backlog = self._buffered_bytes(viewer.conn, out.stream_id)
+        if backlog > self.max_backlog_bytes:
+            return True
+        # Frames entirely below (written - backlog) have left our queue; forget their marks.
+        sent = out.written - backlog
+        while out.marks and out.marks[0][0] <= sent:
+            out.marks.popleft()
+        if viewer.max_latency_s is None or not out.marks:
+            return False
+        return now - out.marks[0][1] > viewer.max_latency_s
+
+    def _skip(self, viewer: _Viewer, upstream: int) -> None:
+        out = viewer.outs.pop(upstream)
+        conn = self._conns[viewer.conn]
+        conn.session.abort_group(out.stream_id, ErrorCode.SKIPPED)
+        conn.stats.groups_skipped += 1
+        self._touched.add(viewer.conn)
+        # The next GroupOpened gives this viewer a fresh stream from that group's start.
+
+    # ------------------------------------------------------------------- helpers
+
+    def _upstream_track(self, conn: _Conn, subscription_id: int) -> _Track | None:
+        key = conn.upstream.get(subscription_id)
+        return None if key is None else self._tracks.get(key)
+
+    def _find_viewer(self, conn_id: ConnId, request_id: int) -> _Viewer | None:
+        for track in self._tracks.values():
+            viewer = track.viewers.get((conn_id, request_id))
+            if viewer is not None:
+                return viewer
+        return None
+
+    def _latency(self, max_latency_ms: int) -> float | None:
+        return max_latency_ms / 1000 if max_latency_ms else self.default_max_latency_s
+
+    def _take_touched(self) -> set[ConnId]:
+        touched = {c for c in self._touched if c in self._conns}
+        self._touched.clear()
+        return touched
