@@ -1,0 +1,195 @@
+"""WebTransport server over aioquic: accepts CONNECT :protocol webtransport.
+
+Each accepted session is handed to `factory(session, request)`; everything else
+(plain requests, CONNECT for other protocols, no common wt-protocol) is answered
+with an HTTP error on that request stream only.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import socket
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from aioquic.asyncio.server import QuicServer
+from aioquic.h3.connection import H3_ALPN
+from aioquic.h3.events import HeadersReceived
+from aioquic.quic.configuration import QuicConfiguration
+from aioquic.quic.connection import QuicConnection
+
+from . import sf
+from .certs import CertBundle
+from .connection import WtConnection, decode_headers
+from .session import HandlerFactory, WtRequest, WtSession
+
+log = logging.getLogger(__name__)
+
+DEFAULT_PROTOCOLS = ("moq-lite-03",)
+
+
+@dataclass(frozen=True)
+class WtServerOptions:
+    factory: HandlerFactory
+    protocols: tuple[str, ...] = DEFAULT_PROTOCOLS
+    """Supported wt-protocol values; the client's order of preference decides."""
+    allow_no_protocol: bool = False
+    """Accept (200, no wt-protocol header) when nothing offered is supported."""
+    wt_max_sessions: int = 1
+    """SETTINGS_WT_MAX_SESSIONS to advertise (Safari needs >= 1); 0 sends none."""
+
+
+def choose_protocol(offered: Sequence[str], supported: Sequence[str]) -> str | None:
+    """First offered protocol the server supports (the client lists by preference)."""
+    return next((p for p in offered if p in supported), None)
+
+
+class WtServerConnection(WtConnection):
+    def __init__(self, quic: QuicConnection, options: WtServerOptions, stream_handler: Any = None):
+        super().__init__(quic, stream_handler)
+        self._options = options
+        self.wt_max_sessions = options.wt_max_sessions
+
+    def headers_received(self, event: HeadersReceived) -> None:
+        stream_id = event.stream_id
+        if stream_id in self.sessions:
+            return  # trailers on a CONNECT stream: nothing to do
+        headers = decode_headers(event.headers)
+        method = headers.get(":method", "")
+        if method != "CONNECT":
+            self._refuse(stream_id, 404)
+            return
+        if headers.get(":protocol") != "webtransport":
+            self._refuse(stream_id, 405)
+            return
+        offered = sf.parse_string_list(headers.get("wt-available-protocols", ""))
+        chosen = choose_protocol(offered, self._options.protocols)
+        if chosen is None and not self._options.allow_no_protocol:
+            log.info("refusing WebTransport session: no common protocol in %s", offered)
+            self._refuse(stream_id, 400)
+            return
+
+        reply = [(b":status", b"200"), (b"sec-webtransport-http3-draft", b"draft02")]
+        if chosen is not None:
+            reply.append((b"wt-protocol", sf.serialize_string(chosen).encode("ascii")))
+        self.h3.send_headers(stream_id, reply)
+        self.schedule_transmit()
+
+        session = WtSession(
+            conn=self,
+            session_id=stream_id,
+            remote_address=self.remote_address,
+            is_client=False,
+            protocol=chosen,
+        )
+        self.sessions[stream_id] = session
+        request = WtRequest(
+            path=headers.get(":path", "/"),
+            authority=headers.get(":authority", ""),
+            headers=headers,
+            protocol=chosen,
+            remote_address=session.remote_address,
+        )
+        try:
+            handler = self._options.factory(session, request)
+        except Exception:
+            log.exception("WebTransport handler factory failed")
+            session.close(1, "internal error")
+            return
+        session.attach(handler)
+
+    def _refuse(self, stream_id: int, status: int) -> None:
+        try:
+            self.h3.send_headers(stream_id, [(b":status", str(status).encode())], end_stream=True)
+        except Exception:  # the request stream may be half-gone already
+            log.debug("could not refuse request on stream %d", stream_id, exc_info=True)
+        self.schedule_transmit()
+
+
+class WtServer:
+    """A listening WebTransport endpoint. `port` is the bound UDP port."""
+
+    def __init__(self, quic_server: QuicServer, transport: asyncio.DatagramTransport) -> None:
+        self._quic_server = quic_server
+        self._transport = transport
+        sockname = transport.get_extra_info("sockname")
+        self.host: str = sockname[0]
+        self.port: int = sockname[1]
+
+    def close(self) -> None:
+        """Close every connection (CONNECTION_CLOSE sent) and stop listening.
+
+        Handlers get on_closed now: aioquic would only report the end after its
+        draining timer, on a transport that is already closed.
+        """
+        for protocol in set(self._quic_server._protocols.values()):
+            if isinstance(protocol, WtConnection):
+                protocol.connection_lost_all("server closed")
+        self._quic_server.close()
+
+
+def bind_udp(host: str, port: int) -> socket.socket:
+    """A UDP socket; "::" also takes IPv4 (V6ONLY off) because Chromium resolves
+    localhost to ::1 while other clients may use 127.0.0.1."""
+    if ":" in host or host == "":
+        sock = socket.socket(socket.AF_INET6, socket.SOCK_DGRAM)
+        sock.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_V6ONLY, 0)
+        try:
+            sock.bind((host or "::", port, 0, 0))
+        except OSError:
+            sock.close()
+            raise
+    else:
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            sock.bind((host, port))
+        except OSError:
+            sock.close()
+            raise
+    sock.setblocking(False)
+    return sock
+
+
+def server_configuration(cert: CertBundle, idle_timeout: float = 30.0) -> QuicConfiguration:
+    config = QuicConfiguration(
+        alpn_protocols=H3_ALPN,
+        is_client=False,
+        max_datagram_frame_size=65536,
+        idle_timeout=idle_timeout,
+    )
+    config.load_cert_chain(cert.cert_path, cert.key_path)
+    return config
+
+
+async def serve_webtransport(
+    factory: HandlerFactory,
+    cert: CertBundle,
+    *,
+    host: str = "::",
+    port: int = 4443,
+    protocols: Sequence[str] = DEFAULT_PROTOCOLS,
+    allow_no_protocol: bool = False,
+    wt_max_sessions: int = 1,
+    idle_timeout: float = 30.0,
+    sock: socket.socket | None = None,
+) -> WtServer:
+    """Listen for WebTransport on UDP `host`:`port` (or an already bound `sock`)."""
+    options = WtServerOptions(
+        factory=factory,
+        protocols=tuple(protocols),
+        allow_no_protocol=allow_no_protocol,
+        wt_max_sessions=wt_max_sessions,
+    )
+    configuration = server_configuration(cert, idle_timeout)
+
+    def create_protocol(quic: QuicConnection, stream_handler: Any = None) -> WtServerConnection:
+        return WtServerConnection(quic, options, stream_handler)
+
+    loop = asyncio.get_running_loop()
+    transport, quic_server = await loop.create_datagram_endpoint(
+        lambda: QuicServer(configuration=configuration, create_protocol=create_protocol),
+        sock=sock if sock is not None else bind_udp(host, port),
+    )
+    return WtServer(quic_server, transport)
