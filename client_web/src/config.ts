@@ -1,0 +1,25 @@
+// Page settings from the query string, so one static bundle serves any relay.
+// Defaults: the relay on the page's own host, port 4443 (the relay's TCP side serves
+// both /certificate.sha256 and these files), broadcast "game".
+
+export interface Config {
+	/** Relay URL given to @moq/lite connect(); http:// makes it pin /certificate.sha256. */
+	url: URL;
+	/** Broadcast name of the game session. */
+	broadcast: string;
+	/** Whether the stats overlay starts visible. */
+	overlay: boolean;
+}
+
+export function readConfig(location: Location = window.location): Config {
+	const query = new URLSearchParams(location.search);
+	const host = location.hostname || "localhost";
+	// An IPv6 literal needs brackets back in a URL.
+	const hostPart = host.includes(":") && !host.startsWith("[") ? `[${host}]` : host;
+	const relay = query.get("url") ?? query.get("relay") ?? `http://${hostPart}:${query.get("port") ?? "4443"}/`;
+	return {
+		url: new URL(relay, location.href),
+		broadcast: query.get("broadcast") ?? query.get("name") ?? "game",
+		overlay: query.get("overlay") !== "0",
+	};
+}

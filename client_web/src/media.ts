@@ -1,0 +1,172 @@
+// Consumes the game broadcast with @moq/lite: `catalog.json`, `timing` and the video
+// track named by the catalog. One call = one subscription epoch; it returns when the
+// broadcast ends (tracks closed by the relay, connection lost, or stop()).
+import { merge } from "@moq/json";
+import * as Moq from "@moq/lite";
+import type { VideoRendition } from "./decoder";
+import type { TimingRecord } from "./timing";
+
+const { Signal } = Moq.Signals;
+
+export const CATALOG_TRACK = "catalog.json";
+export const TIMING_TRACK = "timing";
+
+// moq-lite priority: higher is sent first when the link is congested. The catalog
+// gates everything, timing is tiny, video is the bulk.
+const PRIORITY = { catalog: 3, timing: 2, video: 1 };
+
+export interface MediaEvents {
+	catalog(rendition: VideoRendition, catalog: unknown): void;
+	/** One moof+mdat; `gap` is true when groups were skipped before this group. */
+	video(fragment: Uint8Array, gap: boolean): void;
+	timing(record: TimingRecord): void;
+	/** Counting only: groups never received, or abandoned unfinished for a newer one. */
+	groupSkipped(count: number): void;
+}
+
+export class MediaSubscription {
+	readonly #broadcast: Moq.Broadcast;
+	readonly #events: MediaEvents;
+	#video?: Moq.Track;
+	#videoName?: string;
+	#stopped = false;
+	/** Resolves with why the subscription ended. */
+	readonly done: Promise<string>;
+
+	constructor(connection: Moq.Connection.Established, name: Moq.Path.Valid, events: MediaEvents) {
+		this.#events = events;
+		this.#broadcast = connection.consume(name);
+		const catalog = this.#broadcast.subscribe(CATALOG_TRACK, PRIORITY.catalog);
+		const timing = this.#broadcast.subscribe(TIMING_TRACK, PRIORITY.timing);
+		// Either essential track ending ends the epoch; the caller decides to resubscribe.
+		this.done = Promise.race([this.#runCatalog(catalog), this.#runTiming(timing)]).finally(() => this.stop());
+	}
+
+	stop(): void {
+		if (this.#stopped) return;
+		this.#stopped = true;
+		this.#video?.close();
+		this.#broadcast.close();
+	}
+
+	async #runCatalog(track: Moq.Track): Promise<string> {
+		try {
+			for (;;) {
+				const group = await track.nextGroupOrdered();
+				if (!group) return "catalog track ended";
+				// First frame of a group: the whole catalog; later frames: RFC 7396 patches.
+				let catalog = await group.readJson();
+				if (catalog === undefined) continue;
+				this.#onCatalog(catalog);
+				for (;;) {
+					const patch = await group.readJson();
+					if (patch === undefined) break;
+					catalog = merge(catalog, patch);
+					this.#onCatalog(catalog);
+				}
+			}
+		} catch (err) {
+			return `catalog: ${errorText(err)}`;
+		}
+	}
+
+	#onCatalog(catalog: unknown): void {
+		const rendition = pickRendition(catalog);
+		if (!rendition) throw new Error("catalog has no CMAF video rendition");
+		this.#events.catalog(rendition, catalog);
+		if (rendition.track !== this.#videoName) {
+			this.#video?.close();
+			this.#videoName = rendition.track;
+			this.#video = this.#broadcast.subscribe(rendition.track, PRIORITY.video);
+			void this.#runVideo(this.#video);
+		}
+	}
+
+	async #runTiming(track: Moq.Track): Promise<string> {
+		try {
+			for (;;) {
+				// readFrame() drains older groups first, then moves on: no frame is lost.
+				const frame = await track.readFrame();
+				if (!frame) return "timing track ended";
+				try {
+					this.#events.timing(JSON.parse(new TextDecoder().decode(frame)) as TimingRecord);
+				} catch (err) {
+					console.warn("upcast: bad timing frame", err);
+				}
+			}
+		} catch (err) {
+			return `timing: ${errorText(err)}`;
+		}
+	}
+
+	async #runVideo(track: Moq.Track): Promise<void> {
+		let last: number | undefined;
+		try {
+			for (;;) {
+				// The relay starts us at its latest group, which begins with a keyframe.
+				const group = await track.nextGroupOrdered();
+				if (!group) break;
+				const gap = last !== undefined && group.sequence !== last + 1;
+				if (gap && last !== undefined) this.#events.groupSkipped(group.sequence - last - 1);
+				last = group.sequence;
+				await this.#readGroup(track, group, gap);
+			}
+		} catch (err) {
+			if (!this.#stopped) console.warn("upcast: video track ended:", errorText(err));
+		}
+		// Without video the epoch is useless: end it so the caller resubscribes.
+		if (track === this.#video) this.stop();
+	}
+
+	// Reads one group; abandons it as soon as a newer group is waiting and nothing of
+	// this one is buffered, because the newer group starts at a newer keyframe.
+	// Why the group's signals and not readFrame(): a pending readFrame() raced against
+	// "newer group" could consume a frame and lose it; peeking is synchronous.
+	async #readGroup(track: Moq.Track, group: Moq.Group, gap: boolean): Promise<void> {
+		let first = true;
+		for (;;) {
+			if (this.#stopped) return;
+			const frame = group.state.frames.peek().shift();
+			if (frame) {
+				this.#events.video(frame, gap && first);
+				first = false;
+				continue;
+			}
+			const closed = group.state.closed.peek();
+			if (closed) return; // FIN (true) or reset (Error): either way the group is over.
+			if (track.state.groups.peek().length > 0 || track.state.closed.peek()) {
+				this.#events.groupSkipped(1);
+				group.close();
+				return;
+			}
+			await Signal.race(group.state.frames, group.state.closed, track.state.groups, track.state.closed);
+		}
+	}
+}
+
+/** The first CMAF video rendition of a hang catalog; its key is the track name. */
+export function pickRendition(catalog: unknown): VideoRendition | undefined {
+	const renditions = (catalog as { video?: { renditions?: Record<string, unknown> } })?.video?.renditions;
+	if (!renditions || typeof renditions !== "object") return undefined;
+	for (const [track, value] of Object.entries(renditions)) {
+		const config = value as {
+			codec?: string;
+			container?: { kind?: string; init?: string };
+			codedWidth?: number;
+			codedHeight?: number;
+		};
+		if (config?.container?.kind !== "cmaf" || !config.container.init || !config.codec) continue;
+		return {
+			track,
+			codec: config.codec,
+			init: config.container.init,
+			codedWidth: config.codedWidth,
+			codedHeight: config.codedHeight,
+		};
+	}
+	return undefined;
+}
+
+export function errorText(err: unknown): string {
+	return err instanceof Error ? err.message : String(err);
+}

@@ -1,0 +1,55 @@
+// The stats overlay: text only, redrawn a few times a second (not per frame: layout
+// work on every frame would itself cost presentation time). Toggled with "o"/F2.
+import type { Stats } from "./player";
+import { STAGES } from "./stats";
+
+export class Overlay {
+	readonly #element: HTMLElement;
+	readonly #stats: () => Stats;
+	#timer = 0;
+
+	constructor(element: HTMLElement, stats: () => Stats, visible: boolean) {
+		this.#element = element;
+		this.#stats = stats;
+		this.visible = visible;
+		window.addEventListener("keydown", (event) => {
+			if (event.key === "o" || event.key === "F2") this.visible = !this.visible;
+		});
+	}
+
+	get visible(): boolean {
+		return !this.#element.hidden;
+	}
+
+	set visible(on: boolean) {
+		this.#element.hidden = !on;
+		clearInterval(this.#timer);
+		if (on) {
+			this.#render();
+			this.#timer = window.setInterval(() => this.#render(), 250);
+		}
+	}
+
+	#render(): void {
+		const s = this.#stats();
+		const lines = [
+			`${s.status}${s.connected ? ` (${s.version})` : ""}`,
+			`fps ${s.fps}  ${s.width}x${s.height}  ${s.codec ?? "-"}`,
+			`frames recv ${s.framesReceived}  dec ${s.framesDecoded}  shown ${s.framesPresented}  dropped ${s.dropped}`,
+			`groups skipped ${s.groupsSkipped}  frame id ${s.lastPresentedFrameId ?? "-"}  inputs ${s.inputsSent}`,
+			"",
+			"latency ms        p50     p95",
+		];
+		for (const stage of STAGES) {
+			const l = s.latency[stage];
+			lines.push(`${stage.padEnd(15)} ${fmt(l?.p50)} ${fmt(l?.p95)}`);
+		}
+		lines.push(`${"input->photon".padEnd(15)} ${fmt(s.inputToPhoton.p50)} ${fmt(s.inputToPhoton.p95)}`);
+		if (s.errors.length > 0) lines.push("", `last error: ${s.errors[s.errors.length - 1]}`);
+		this.#element.textContent = lines.join("\n");
+	}
+}
+
+function fmt(value: number | undefined): string {
+	return (value === undefined ? "-" : value.toFixed(1)).padStart(7);
+}

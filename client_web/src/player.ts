@@ -1,0 +1,242 @@
+// The upcast player: glue between the connection loop, the media subscription, the
+// decoder, the renderer, the overlay and the input publisher; plus window.upcast, the
+// hooks the end-to-end tests read.
+import * as Moq from "@moq/lite";
+import { wallMs, wallUs } from "./clock";
+import { readConfig } from "./config";
+import { Announcement, type Status, keepConnected, sleep } from "./connection";
+import { mountControls } from "./controls";
+import { Decoder } from "./decoder";
+import { InputCapture, InputPublisher } from "./input";
+import { errorText, MediaSubscription } from "./media";
+import { Overlay } from "./overlay";
+import { Renderer } from "./renderer";
+import { FpsMeter, StageLatency } from "./stats";
+import { InputToPhoton, TimingJoin } from "./timing";
+
+type Summary = Record<string, { p50?: number; p95?: number; n: number; samples: number[] }>;
+
+export interface Stats {
+	status: string;
+	connected: boolean;
+	version?: string;
+	subscribed: boolean;
+	fps: number;
+	framesReceived: number;
+	framesDecoded: number;
+	framesPresented: number;
+	dropped: number;
+	skippedUndecodable: number;
+	groupsSkipped: number;
+	width: number;
+	height: number;
+	codec?: string;
+	lastPresentedFrameId?: number;
+	lastPresentedPtsUs?: number;
+	inputsSent: number;
+	inputPath: string;
+	inputSubscribers: number;
+	/** Per stage, in ms: render ... publish (server), network, decode, present, total. */
+	latency: Summary;
+	/** Key press -> first frame showing it, ms. */
+	inputToPhoton: { p50?: number; p95?: number; samples: number[] };
+	errors: string[];
+}
+
+const MAX_ERRORS = 50;
+
+function main(): void {
+	const config = readConfig();
+	const canvas = document.getElementById("screen") as HTMLCanvasElement;
+	const statusLine = document.getElementById("status") as HTMLElement;
+
+	const latency = new StageLatency();
+	const timing = new TimingJoin(latency);
+	const inputToPhoton = new InputToPhoton();
+	const fps = new FpsMeter();
+	const errors: string[] = [];
+	const state = {
+		status: "starting" as string,
+		connected: false,
+		version: undefined as string | undefined,
+		subscribed: false,
+		framesReceived: 0,
+		groupsSkipped: 0,
+		codec: undefined as string | undefined,
+		lastPresentedFrameId: undefined as number | undefined,
+		lastPresentedPtsUs: undefined as number | undefined,
+	};
+
+	const error = (message: string): void => {
+		console.error("upcast:", message);
+		errors.push(message);
+		if (errors.length > MAX_ERRORS) errors.shift();
+	};
+	window.addEventListener("error", (event) => error(`uncaught: ${event.message}`));
+	window.addEventListener("unhandledrejection", (event) => error(`unhandled rejection: ${errorText(event.reason)}`));
+
+	const setStatus = (status: Status | string, detail?: string): void => {
+		state.status = detail ? `${status}: ${detail}` : status;
+		state.connected = status === "connected" || status === "subscribed" || status === "waiting for broadcast";
+		statusLine.textContent = state.status;
+		statusLine.dataset.state = status;
+		if (status === "failed") error(state.status);
+	};
+
+	const renderer = new Renderer(canvas);
+	renderer.onPresent = ({ ptsUs }) => {
+		const now = wallUs();
+		fps.tick(now / 1000);
+		timing.stamp(ptsUs, "present", now);
+		state.lastPresentedPtsUs = ptsUs;
+		// The record may still be on its way; then the id stays unknown for this frame.
+		state.lastPresentedFrameId = timing.record(ptsUs)?.frame;
+	};
+	timing.onPresented = (record, presentUs) => inputToPhoton.presented(record, presentUs);
+
+	const decoder = new Decoder({
+		frame: (frame) => {
+			timing.stamp(frame.timestamp, "decode", wallUs());
+			renderer.push(frame);
+		},
+		error,
+	});
+
+	const publisher = new InputPublisher(config.broadcast);
+	const capture = new InputCapture(canvas, publisher);
+	capture.onPress = (seq, sentMs) => inputToPhoton.press(seq, sentMs);
+	mountControls(document.getElementById("controls") as HTMLElement, publisher);
+
+	const stats = (): Stats => ({
+		...state,
+		fps: fps.fps(wallMs()),
+		framesDecoded: decoder.decoded,
+		framesPresented: renderer.presented,
+		dropped: renderer.dropped,
+		skippedUndecodable: decoder.skipped,
+		width: renderer.width,
+		height: renderer.height,
+		inputsSent: publisher.sent,
+		inputPath: publisher.path,
+		inputSubscribers: publisher.subscribers,
+		latency: latency.summary(),
+		inputToPhoton: {
+			p50: inputToPhoton.window.percentile(50),
+			p95: inputToPhoton.window.percentile(95),
+			samples: inputToPhoton.window.samples,
+		},
+		errors: [...errors],
+	});
+
+	new Overlay(document.getElementById("overlay") as HTMLElement, stats, config.overlay);
+
+	(window as unknown as { upcast: unknown }).upcast = {
+		config,
+		stats,
+		/** What the canvas shows right now and which server frame it is (same task). */
+		snapshot: () => ({
+			frameId: state.lastPresentedFrameId ?? null,
+			ptsUs: state.lastPresentedPtsUs ?? null,
+			width: canvas.width,
+			height: canvas.height,
+			dataUrl: canvas.toDataURL("image/png"),
+		}),
+		/** Send an input message by hand (tests); returns it with seq and sent_ms. */
+		send: (message: Parameters<InputPublisher["send"]>[0]) => publisher.send(message),
+	};
+
+	if (!window.isSecureContext || typeof WebTransport === "undefined" || !Decoder.supported()) {
+		// Browsers only offer WebTransport and WebCodecs to https:// or localhost pages.
+		setStatus("failed", "this page needs WebTransport and WebCodecs (a secure context: https:// or localhost)");
+		return;
+	}
+
+	const name = Moq.Path.from(config.broadcast);
+	void keepConnected(config.url, {
+		status: setStatus,
+		run: async (connection, closed) => {
+			state.version = connection.version;
+			publisher.attach(connection);
+			try {
+				await follow(connection, closed);
+			} finally {
+				publisher.detach();
+				state.subscribed = false;
+				state.version = undefined;
+			}
+		},
+	});
+
+	// Subscribe to the game broadcast until the connection closes; resubscribe when the
+	// subscription ends or the broadcast is announced again after going away.
+	async function follow(connection: Moq.Connection.Established, closed: Promise<string>): Promise<void> {
+		const announcement = new Announcement(connection, name);
+		let connectionOpen = true;
+		void closed.then(() => {
+			connectionOpen = false;
+		});
+		while (connectionOpen) {
+			if (announcement.active === false) {
+				setStatus("waiting for broadcast", config.broadcast);
+				await Promise.race([announcement.changed(), closed]);
+				continue;
+			}
+			const generation = announcement.generation;
+			const subscription = new MediaSubscription(connection, name, {
+				catalog: (rendition) => {
+					state.codec = rendition.codec;
+					try {
+						decoder.configure(rendition);
+					} catch (err) {
+						error(`configure ${rendition.codec}: ${errorText(err)}`);
+					}
+				},
+				video: (fragment, gap) => {
+					state.framesReceived++;
+					const now = wallUs();
+					if (gap) decoder.gap();
+					try {
+						for (const ptsUs of decoder.decode(fragment)) timing.stamp(ptsUs, "receive", now);
+					} catch (err) {
+						error(`decode: ${errorText(err)}`);
+						decoder.gap();
+					}
+				},
+				timing: (record) => timing.addRecord(record),
+				groupSkipped: (count) => {
+					state.groupsSkipped += count;
+				},
+			});
+			state.subscribed = true;
+			setStatus("subscribed", config.broadcast);
+			console.info("upcast: subscribed to", config.broadcast);
+			// Stop when the subscription ends, the broadcast goes (or comes back: its
+			// publisher restarted) or the connection closes.
+			let ended = false;
+			const why = await Promise.race([
+				subscription.done,
+				closed,
+				(async () => {
+					while (!ended) {
+						await announcement.changed();
+						if (announcement.active === false) return "broadcast announced inactive";
+						if (announcement.generation !== generation) return "broadcast announced again";
+					}
+					return "";
+				})(),
+			]);
+			ended = true; // lets the announce watcher above finish at the next change
+			subscription.stop();
+			state.subscribed = false;
+			decoder.gap();
+			renderer.clear();
+			console.warn("upcast: subscription ended:", why);
+			if (!connectionOpen) return;
+			setStatus("waiting for broadcast", why);
+			// Back off a little unless an announce says it is back.
+			await Promise.race([sleep(1000), announcement.changed(), closed]);
+		}
+	}
+}
+
+main();

@@ -1,0 +1,87 @@
+// Rolling measurements for the overlay and the test hooks.
+// Why bounded windows: a page left open for hours must not grow without limit, and the
+// overlay shows recent behaviour (p50/p95 of the last samples), not all-time averages.
+
+/** The latest `capacity` samples of one quantity, with percentiles. */
+export class Window {
+	readonly #values: number[] = [];
+	constructor(readonly capacity = 600) {}
+
+	push(value: number): void {
+		if (!Number.isFinite(value)) return;
+		this.#values.push(value);
+		if (this.#values.length > this.capacity) this.#values.shift();
+	}
+
+	get samples(): number[] {
+		return [...this.#values];
+	}
+
+	get count(): number {
+		return this.#values.length;
+	}
+
+	/** Nearest-rank percentile (p in [0, 100]); undefined while empty. */
+	percentile(p: number): number | undefined {
+		if (this.#values.length === 0) return undefined;
+		const sorted = [...this.#values].sort((a, b) => a - b);
+		const rank = Math.min(sorted.length - 1, Math.max(0, Math.ceil((p / 100) * sorted.length) - 1));
+		return sorted[rank];
+	}
+
+	clear(): void {
+		this.#values.length = 0;
+	}
+}
+
+/** Frames per second over the last second of presentation times. */
+export class FpsMeter {
+	readonly #times: number[] = [];
+
+	tick(nowMs: number): void {
+		this.#times.push(nowMs);
+		this.#trim(nowMs);
+	}
+
+	fps(nowMs: number): number {
+		this.#trim(nowMs);
+		return this.#times.length;
+	}
+
+	#trim(nowMs: number): void {
+		while (this.#times.length > 0 && this.#times[0] <= nowMs - 1000) this.#times.shift();
+	}
+}
+
+/** Server stages computed from the timing track: name -> [from stamp, to stamp]. */
+export const SERVER_SPANS: ReadonlyArray<readonly [string, string, string]> = [
+	// Same pairs as server/timing.py STAGE_SPANS so the page and the server agree.
+	["render", "render_start", "render_end"],
+	["ring_r_handoff", "ring_r_ready", "upscale_start"],
+	["upscale", "upscale_start", "upscale_end"],
+	["ring_u_handoff", "ring_u_ready", "encode_start"],
+	["encode", "encode_start", "encode_end"],
+	["publish", "encode_end", "publish"],
+];
+
+/** Client stages the page measures itself, then the end-to-end total. */
+export const CLIENT_STAGES = ["network", "decode", "present", "total"] as const;
+
+export const STAGES: readonly string[] = [...SERVER_SPANS.map(([name]) => name), ...CLIENT_STAGES];
+
+/** One Window per latency stage, in milliseconds. */
+export class StageLatency {
+	readonly windows = new Map<string, Window>(STAGES.map((name) => [name, new Window()]));
+
+	add(stage: string, ms: number): void {
+		this.windows.get(stage)?.push(ms);
+	}
+
+	summary(): Record<string, { p50?: number; p95?: number; n: number; samples: number[] }> {
+		const out: Record<string, { p50?: number; p95?: number; n: number; samples: number[] }> = {};
+		for (const [name, window] of this.windows) {
+			out[name] = { p50: window.percentile(50), p95: window.percentile(95), n: window.count, samples: window.samples };
+		}
+		return out;
+	}
+}
