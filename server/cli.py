@@ -16,7 +16,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "eval": ("eval", "quality evaluations: speed against error, tables and plots"),
     "worker": ("worker", "run the upscaler worker on existing rings (normally started for you)"),
     "game": ("game", "run the reference game into ring R (normally started for you)"),
-    "up": ("up", "start game, upscaler worker and a preview page; print where to watch"),
+    "up": ("up", "start game, worker, session, relay and web page; print where to watch"),
+    "relay": ("relay", "run the moq-lite relay: publishers in, browsers and viewers out"),
+    "session": ("session", "stream an existing game session's ring U to a relay"),
+    "loadtest": ("loadtest", "many moq-lite viewers against a relay: fps, loss, latency, CPU"),
 }
 
 

@@ -1,0 +1,116 @@
+"""``upcast relay``: the moq-lite relay (WebTransport on UDP, HTTP on TCP, one port)."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import logging
+import signal
+import sys
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+DEFAULT_WEB_ROOT = Path(__file__).resolve().parents[2] / "client_web" / "dist"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--host", default="::", help="address to bind (default :: = all, dual stack)"
+    )
+    parser.add_argument("--port", type=int, default=4443, help="UDP (QUIC) and TCP (HTTP) port")
+    parser.add_argument(
+        "--web-root",
+        type=Path,
+        default=None,
+        help=f"static web client to serve (default: {DEFAULT_WEB_ROOT} if built)",
+    )
+    parser.add_argument(
+        "--cert", type=Path, default=None, help="certificate PEM (default: generated)"
+    )
+    parser.add_argument("--key", type=Path, default=None, help="private key PEM for --cert")
+    parser.add_argument(
+        "--max-backlog-kib",
+        type=int,
+        default=2048,
+        help="bytes queued for one viewer before it skips to the newest group (KiB)",
+    )
+    parser.add_argument("--max-sessions", type=int, default=1000, help="sessions at once")
+    parser.add_argument("--duration", type=float, default=None, help="stop after SECONDS")
+    parser.add_argument("--ready-file", type=Path, default=None, help=argparse.SUPPRESS)
+
+
+def _problem(args: argparse.Namespace) -> str | None:
+    if not 0 <= args.port <= 65535:
+        return f"--port must be 0..65535, got {args.port}"
+    if (args.cert is None) != (args.key is None):
+        return "--cert and --key go together"
+    if args.max_backlog_kib < 16:
+        return f"--max-backlog-kib must be at least 16, got {args.max_backlog_kib}"
+    if args.max_sessions < 1:
+        return f"--max-sessions must be positive, got {args.max_sessions}"
+    if args.web_root is not None and not (args.web_root / "index.html").is_file():
+        return (
+            f"--web-root {args.web_root} has no index.html"
+            " (build it: cd client_web && npm ci && npm run build)"
+        )
+    return None
+
+
+def run(args: argparse.Namespace) -> int:
+    problem = _problem(args)
+    if problem is not None:
+        print(f"upcast relay: {problem}", file=sys.stderr)
+        return 2
+    try:
+        import uvloop
+
+        uvloop.install()
+    except ImportError:  # pragma: no cover - uvloop is a dependency; plain asyncio works too
+        pass
+    return asyncio.run(_main(args))
+
+
+async def _main(args: argparse.Namespace) -> int:
+    from server.quic.certs import generate_cert, load_cert
+    from server.relay import Relay, RelayConfig
+
+    cert = load_cert(args.cert, args.key) if args.cert else generate_cert()
+    web_root = args.web_root
+    if web_root is None and (DEFAULT_WEB_ROOT / "index.html").is_file():
+        web_root = DEFAULT_WEB_ROOT
+    config = RelayConfig(
+        host=args.host,
+        port=args.port,
+        web_root=web_root,
+        max_backlog_bytes=args.max_backlog_kib * 1024,
+        max_connections=args.max_sessions,
+    )
+    relay = Relay(config, cert)
+    try:
+        await relay.start()
+    except OSError as exc:
+        print(
+            f"upcast relay: cannot listen on port {args.port}: {exc.strerror or exc}",
+            file=sys.stderr,
+        )
+        return 1
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    host = "localhost" if args.host in ("::", "0.0.0.0", "") else args.host
+    print(
+        f"upcast relay: listening on port {relay.port}; certificate sha256 {cert.sha256_hex}; "
+        f"page http://{host}:{relay.port}/ ; metrics http://{host}:{relay.port}/metrics",
+        flush=True,
+    )
+    if args.ready_file is not None:
+        args.ready_file.write_text(f"{relay.port}\n{cert.sha256_hex}\n")
+    with contextlib.suppress(TimeoutError):
+        async with asyncio.timeout(args.duration):
+            await stop.wait()
+    await relay.close()
+    log.info("relay stopped")
+    return 0

@@ -1,0 +1,247 @@
+"""The relay process: WebTransport endpoints + RelayCore + metrics, on one port number.
+
+UDP carries QUIC (moq-lite-03 over WebTransport) for publishers, browsers and
+load-test viewers; TCP on the same number serves the certificate hash, the web
+client, ``/metrics`` (Prometheus) and ``/stats`` (JSON). Every connection is a
+MoqLink whose received bytes go to the shared RelayCore; whatever connections
+the core touched are flushed right away, so a frame from the publisher is on
+the viewers' streams before the next datagram is read.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import json
+import logging
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from prometheus_client import (
+    CONTENT_TYPE_LATEST,
+    CollectorRegistry,
+    Counter,
+    Gauge,
+    Histogram,
+    generate_latest,
+)
+from prometheus_client.process_collector import ProcessCollector
+
+from server.moq.limits import MoqLimits
+from server.moq.relay_core import ConnId, RelayCore
+from server.moq_link import MoqLink
+from server.quic.certs import CertBundle
+from server.quic.endpoints import Endpoints, serve
+from server.quic.http_side import HttpRequest, Response
+from server.quic.session import WtRequest, WtSession
+
+log = logging.getLogger(__name__)
+
+POLL_INTERVAL_S = 0.05
+STATS_INTERVAL_S = 1.0
+
+
+@dataclass
+class RelayConfig:
+    host: str = "::"
+    port: int = 4443
+    web_root: Path | None = None
+    max_backlog_bytes: int = 2 * 1024 * 1024
+    max_connections: int = 1000
+    limits: MoqLimits = field(default_factory=MoqLimits)
+
+
+class RelayMetrics:
+    def __init__(self, registry: CollectorRegistry) -> None:
+        self.connections = Gauge("upcast_relay_connections", "Open sessions", registry=registry)
+        self.accepted = Counter("upcast_relay_sessions", "Sessions accepted", registry=registry)
+        self.refused = Counter(
+            "upcast_relay_sessions_refused", "Sessions refused (limit)", registry=registry
+        )
+        self.frames_in = Counter(
+            "upcast_relay_frames_in", "Frames from publishers", registry=registry
+        )
+        self.frames_out = Counter("upcast_relay_frames_out", "Frames to viewers", registry=registry)
+        self.bytes_out = Counter(
+            "upcast_relay_bytes_out", "Payload bytes to viewers", registry=registry
+        )
+        self.skipped = Counter(
+            "upcast_relay_groups_skipped", "Groups a slow viewer skipped", registry=registry
+        )
+        self.viewers = Gauge(
+            "upcast_relay_viewers",
+            "Subscribers per track",
+            ["broadcast", "track"],
+            registry=registry,
+        )
+        self.handle = Histogram(
+            "upcast_relay_handle_seconds",
+            "Time to act on one burst of input (relay_in -> relay_out on the viewers' streams)",
+            buckets=(0.0001, 0.0002, 0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05),
+            registry=registry,
+        )
+
+
+class Relay:
+    """Owns the endpoints, the links and the fan-out core."""
+
+    def __init__(self, config: RelayConfig, cert: CertBundle) -> None:
+        self.config = config
+        self.cert = cert
+        self.registry = CollectorRegistry()
+        ProcessCollector(registry=self.registry)  # process_cpu_seconds_total for the load test
+        self.metrics = RelayMetrics(self.registry)
+        self.core = RelayCore(self._buffered, max_backlog_bytes=config.max_backlog_bytes)
+        self.links: dict[int, MoqLink] = {}
+        self._ids = itertools.count(1)
+        self._endpoints: Endpoints | None = None
+        self._tasks: list[asyncio.Task[None]] = []
+        self._last_totals = (0, 0, 0, 0)
+        self.started = time.monotonic()
+
+    @property
+    def port(self) -> int:
+        assert self._endpoints is not None, "relay not started"
+        return self._endpoints.port
+
+    async def start(self) -> None:
+        routes = {"/metrics": self._metrics_route, "/stats": self._stats_route}
+        self._endpoints = await serve(
+            self._accept,
+            self.cert,
+            host=self.config.host,
+            port=self.config.port,
+            web_root=self.config.web_root,
+            routes=routes,
+        )
+        self._tasks.append(asyncio.create_task(self._poll_loop(), name="relay-poll"))
+        self._tasks.append(asyncio.create_task(self._stats_loop(), name="relay-stats"))
+        log.info(
+            "relay listening on %s port %d (QUIC/UDP and HTTP/TCP)", self.config.host, self.port
+        )
+
+    async def close(self) -> None:
+        for task in self._tasks:
+            task.cancel()
+        for link in list(self.links.values()):
+            link.close(0, "relay shutting down")
+        if self._endpoints is not None:
+            await self._endpoints.close()
+
+    # -- connections --------------------------------------------------------------
+
+    def _accept(self, wt: WtSession, request: WtRequest) -> MoqLink:
+        conn_id = next(self._ids)
+        link = MoqLink(
+            wt,
+            request,
+            on_closed=lambda link, reason: self._closed(conn_id, reason),
+            limits=self.config.limits,
+            after_input=lambda link: self._handle(conn_id),
+        )
+        if len(self.links) >= self.config.max_connections:
+            self.metrics.refused.inc()
+            log.warning("relay: refusing %s: %d sessions open", link.remote, len(self.links))
+            asyncio.get_running_loop().call_soon(wt.close, 0x100, "too many sessions")
+            return link
+        self.links[conn_id] = link
+        self.metrics.accepted.inc()
+        self.metrics.connections.set(len(self.links))
+        log.info("relay: session %d from %s (%s)", conn_id, link.remote, request.path)
+        self._flush(self.core.add_connection(conn_id, link.moq))
+        return link
+
+    def _closed(self, conn_id: int, reason: str) -> None:
+        link = self.links.pop(conn_id, None)
+        if link is None:
+            return
+        stats = self.core.stats(conn_id)
+        log.info("relay: session %d from %s closed (%s); %s", conn_id, link.remote, reason, stats)
+        self.metrics.connections.set(len(self.links))
+        self._flush(self.core.remove_connection(conn_id))
+
+    def _handle(self, conn_id: int) -> None:
+        t0 = time.perf_counter()
+        touched = self.core.handle(conn_id)
+        self._flush(touched)
+        self.metrics.handle.observe(time.perf_counter() - t0)
+        link = self.links.get(conn_id)
+        if link is not None and link.moq.closed:
+            # A protocol error closed this one session; the others go on.
+            self._closed(conn_id, "protocol error")
+
+    def _flush(self, touched: set[ConnId]) -> None:
+        for conn_id in touched:
+            link = self.links.get(conn_id)  # type: ignore[call-overload]
+            if link is not None:
+                link.flush()
+
+    def _buffered(self, conn_id: ConnId, stream_id: int) -> int:
+        link = self.links.get(conn_id)  # type: ignore[call-overload]
+        return 0 if link is None else link.wt.buffered_bytes(stream_id)
+
+    # -- timers -------------------------------------------------------------------
+
+    async def _poll_loop(self) -> None:
+        while True:
+            await asyncio.sleep(POLL_INTERVAL_S)
+            try:
+                self._flush(self.core.poll())
+            except Exception:
+                log.exception("relay poll failed")
+
+    async def _stats_loop(self) -> None:
+        while True:
+            await asyncio.sleep(STATS_INTERVAL_S)
+            self._update_counters()
+
+    def _update_counters(self) -> None:
+        frames_in = frames_out = bytes_out = skipped = 0
+        for conn_id in self.links:
+            s = self.core.stats(conn_id)
+            if s is not None:
+                frames_in += s.frames_in
+                frames_out += s.frames_out
+                bytes_out += s.bytes_out
+                skipped += s.groups_skipped
+        # Counters only grow: closed sessions' totals stay counted.
+        last = self._last_totals
+        m = self.metrics
+        for counter, now, before in (
+            (m.frames_in, frames_in, last[0]),
+            (m.frames_out, frames_out, last[1]),
+            (m.bytes_out, bytes_out, last[2]),
+            (m.skipped, skipped, last[3]),
+        ):
+            if now > before:
+                counter.inc(now - before)
+        self._last_totals = (frames_in, frames_out, bytes_out, skipped)
+        for (broadcast, track), count in self._viewer_counts().items():
+            m.viewers.labels(broadcast, track).set(count)
+
+    def _viewer_counts(self) -> dict[tuple[str, str], int]:
+        counts: dict[tuple[str, str], int] = {}
+        for broadcast in self.core.broadcasts:
+            for track in ("video", "timing", "catalog.json"):
+                counts[(broadcast, track)] = self.core.viewer_count(broadcast, track)
+        return counts
+
+    def snapshot(self) -> dict[str, object]:
+        return {
+            "uptime_s": round(time.monotonic() - self.started, 1),
+            "sessions": len(self.links),
+            "broadcasts": sorted(self.core.broadcasts),
+            "viewers": {f"{b}/{t}": n for (b, t), n in self._viewer_counts().items()},
+            "per_session": {
+                str(cid): asdict(s) if (s := self.core.stats(cid)) is not None else None
+                for cid in self.links
+            },
+        }
+
+    async def _metrics_route(self, request: HttpRequest) -> Response:
+        self._update_counters()
+        return 200, CONTENT_TYPE_LATEST, generate_latest(self.registry)
+
+    async def _stats_route(self, request: HttpRequest) -> Response:
+        return 200, "application/json", json.dumps(self.snapshot()).encode()
