@@ -11,6 +11,7 @@ BENCHMARKS: dict[str, str] = {
     "pipeline": "game -> worker -> ring U for a while: fps, drops, per-stage latency",
     "render": "reference renderer speed per scene",
     "framegen": "frame prediction (MPE and baselines): quality against cost per scene",
+    "encode": "x264 + CMAF per frame: ms, bytes, PSNR, keyframe cost, mux delay",
 }
 
 
