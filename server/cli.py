@@ -17,6 +17,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "worker": ("worker", "run the upscaler worker on existing rings (normally started for you)"),
     "game": ("game", "run the reference game into ring R (normally started for you)"),
     "up": ("up", "start game, worker, session, relay and web page; print where to watch"),
+    "preview": ("preview", "game + worker + a local MJPEG preview page (no streaming server)"),
     "relay": ("relay", "run the moq-lite relay: publishers in, browsers and viewers out"),
     "session": ("session", "stream an existing game session's ring U to a relay"),
     "loadtest": ("loadtest", "many moq-lite viewers against a relay: fps, loss, latency, CPU"),
@@ -61,6 +62,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
+    if not args.verbose:
+        # aioquic logs every handshake at INFO; our own loggers say what matters.
+        logging.getLogger("quic").setLevel(logging.WARNING)
     try:
         return int(args.handler(args))
     except KeyboardInterrupt:

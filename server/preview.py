@@ -1,7 +1,7 @@
 """The local preview: ring U as an MJPEG stream, stats and controls over plain HTTP.
 
-Until the Media-over-QUIC streaming server exists, ``upcast up`` serves this
-page so a person can watch, steer and switch upscalers. It is deliberately
+``upcast preview`` serves this page so a person can watch, steer and switch
+upscalers without the streaming server (``upcast up`` runs the real one). It is deliberately
 small: the standard library's threading HTTP server plus Pillow for JPEG.
 
 One consumer thread owns ring U. It always takes the newest frame (never

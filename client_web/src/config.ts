@@ -1,6 +1,7 @@
 // Page settings from the query string, so one static bundle serves any relay.
-// Defaults: the relay on the page's own host, port 4443 (the relay's TCP side serves
-// both /certificate.sha256 and these files), broadcast "game".
+// Defaults: the relay that served this page (its TCP side serves both these files and
+// /certificate.sha256 on the QUIC port number), else port 4443 on the page's host;
+// broadcast "game".
 
 export interface Config {
 	/** Relay URL given to @moq/lite connect(); http:// makes it pin /certificate.sha256. */
@@ -16,7 +17,8 @@ export function readConfig(location: Location = window.location): Config {
 	const host = location.hostname || "localhost";
 	// An IPv6 literal needs brackets back in a URL.
 	const hostPart = host.includes(":") && !host.startsWith("[") ? `[${host}]` : host;
-	const relay = query.get("url") ?? query.get("relay") ?? `http://${hostPart}:${query.get("port") ?? "4443"}/`;
+	const port = query.get("port") ?? (location.protocol.startsWith("http") && location.port ? location.port : "4443");
+	const relay = query.get("url") ?? query.get("relay") ?? `http://${hostPart}:${port}/`;
 	return {
 		url: new URL(relay, location.href),
 		broadcast: query.get("broadcast") ?? query.get("name") ?? "game",

@@ -5,7 +5,8 @@ import "@moq/watch/element";
 const query = new URLSearchParams(window.location.search);
 const host = window.location.hostname || "localhost";
 const hostPart = host.includes(":") && !host.startsWith("[") ? `[${host}]` : host;
-const url = query.get("url") ?? `http://${hostPart}:${query.get("port") ?? "4443"}/`;
+const port = query.get("port") ?? (window.location.protocol.startsWith("http") && window.location.port ? window.location.port : "4443");
+const url = query.get("url") ?? `http://${hostPart}:${port}/`;
 const name = query.get("broadcast") ?? query.get("name") ?? "game";
 
 const element = document.createElement("moq-watch");

@@ -1,74 +1,101 @@
-"""``upcast up``: the whole local stack (game, upscaler worker, preview page) in one command."""
+"""``upcast up``: the whole stack on one machine, printing where to watch.
+
+Processes: the game (renders into ring R), the upscaler worker (ring R -> ring
+U), the relay (moq-lite over WebTransport, serves the web player) and, in this
+process, the streaming session (ring U -> CMAF -> broadcast on the relay,
+viewer inputs -> game and worker). A dead worker or relay is restarted; the
+game never waits for either.
+"""
 
 from __future__ import annotations
 
 import argparse
+import asyncio
 import contextlib
-import errno
 import logging
 import signal
-import socket
 import sys
-import threading
 import time
-from typing import Any
+from pathlib import Path
 
 log = logging.getLogger(__name__)
 
 CHECK_INTERVAL_S = 0.5
+CONNECT_TIMEOUT_S = 30.0
+DEFAULT_WEB_ROOT = Path(__file__).resolve().parents[2] / "client_web" / "dist"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scene", default="default", help="scene preset (default: default)")
     parser.add_argument("--render-size", default="640x360", help="game render size WIDTHxHEIGHT")
-    parser.add_argument("--display-size", default="1280x720", help="upscaled size WIDTHxHEIGHT")
-    parser.add_argument("--fps", type=float, default=60.0, help="game frame rate")
+    parser.add_argument("--display-size", default="1280x720", help="streamed size WIDTHxHEIGHT")
+    parser.add_argument("--fps", type=float, default=60.0, help="game and stream frame rate")
     parser.add_argument("--upscaler", default="bilinear", help="initial upscaler")
     parser.add_argument(
-        "--host", default="127.0.0.1", help="address the preview binds (e.g. 0.0.0.0 or ::)"
+        "--host", default="::", help="relay bind address (default :: = all, dual stack)"
     )
-    parser.add_argument("--port", type=int, default=8080, help="preview HTTP port")
+    parser.add_argument("--port", type=int, default=4443, help="relay port, UDP (QUIC) and TCP")
+    parser.add_argument("--broadcast", default="game", help="broadcast name (default: game)")
     parser.add_argument(
-        "--preview-fps",
-        type=float,
-        default=30.0,
-        help="most JPEG frames per second the preview encodes",
+        "--bitrate-kbps",
+        type=int,
+        default=None,
+        help="video bitrate (default: scaled 6 Mbit/s 720p60)",
+    )
+    parser.add_argument(
+        "--metrics-port",
+        type=int,
+        default=None,
+        help="TCP port of the session's Prometheus metrics (default: relay port + 1; 0 = off)",
+    )
+    parser.add_argument(
+        "--web-root", type=Path, default=DEFAULT_WEB_ROOT, help="built web client (client_web/dist)"
     )
     parser.add_argument(
         "--duration", type=float, default=None, help="stop after SECONDS (default: until Ctrl-C)"
     )
 
 
-def _port_problem(host: str, port: int) -> str | None:
-    """Why ``host:port`` cannot be bound, or None; checked before spawning anything."""
-    family = socket.AF_INET6 if ":" in host else socket.AF_INET
-    try:
-        with socket.socket(family, socket.SOCK_STREAM) as s:
-            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            s.bind((host, port))
-    except OSError as exc:
-        return _bind_message(host, port, exc)
+def _problem(args: argparse.Namespace) -> str | None:
+    if not 1 <= args.port <= 65535:
+        return f"--port must be 1..65535, got {args.port}"
+    if args.metrics_port is not None and not 0 <= args.metrics_port <= 65535:
+        return f"--metrics-port must be 0..65535, got {args.metrics_port}"
+    if args.duration is not None and args.duration <= 0:
+        return f"--duration must be positive, got {args.duration}"
+    if args.bitrate_kbps is not None and args.bitrate_kbps < 100:
+        return f"--bitrate-kbps must be at least 100, got {args.bitrate_kbps}"
+    if not (args.web_root / "index.html").is_file():
+        return (
+            f"the web client is not built ({args.web_root}/index.html missing): "
+            "run ./dev up, or cd client_web && npm ci && npm run build"
+        )
     return None
 
 
-def _bind_message(host: str, port: int, exc: OSError) -> str:
-    if exc.errno == errno.EADDRINUSE:
-        return (
-            f"upcast up: port {port} on {host} is already in use; "
-            f"pick another with --port (e.g. --port {port + 1})"
-        )
-    if exc.errno == errno.EACCES:
-        return f"upcast up: not allowed to bind port {port}; use --port above 1023"
-    return f"upcast up: cannot listen on {host}:{port} ({exc.strerror or exc}); check --host/--port"
+def _browser_host(bind: str) -> str:
+    # Chromium resolves localhost to ::1 first; a dual-stack "::" bind takes both.
+    if bind in ("::", "", "0.0.0.0"):
+        return "localhost" if bind != "0.0.0.0" else "127.0.0.1"
+    return f"[{bind}]" if ":" in bind else bind
+
+
+def _session_host(bind: str) -> str:
+    if bind in ("::", "", "0.0.0.0"):
+        return "127.0.0.1"
+    return f"[{bind}]" if ":" in bind else bind
 
 
 def run(args: argparse.Namespace) -> int:
     from pydantic import ValidationError
 
     from server.config_errors import format_validation_error
-    from server.preview import PreviewServer
-    from server.stack import LocalStack, SessionConfig
+    from server.stack import SessionConfig
 
+    problem = _problem(args)
+    if problem is not None:
+        print(f"upcast up: {problem}", file=sys.stderr)
+        return 2
     try:
         config = SessionConfig(
             scene=args.scene,
@@ -80,92 +107,111 @@ def run(args: argparse.Namespace) -> int:
     except ValidationError as exc:
         print(format_validation_error("session", exc), file=sys.stderr)
         return 2
-    if not 0 <= args.port <= 65535:
-        print(f"upcast up: --port must be 0..65535, got {args.port}", file=sys.stderr)
-        return 2
-    if args.preview_fps <= 0:
-        print(f"upcast up: --preview-fps must be positive, got {args.preview_fps}", file=sys.stderr)
-        return 2
-    if args.duration is not None and args.duration <= 0:
-        print(f"upcast up: --duration must be positive, got {args.duration}", file=sys.stderr)
-        return 2
-    problem = _port_problem(args.host, args.port)
-    if problem is not None:
-        print(problem, file=sys.stderr)
-        return 1
+    try:
+        import uvloop
 
-    stop = threading.Event()
-    started = threading.Event()
+        uvloop.install()
+    except ImportError:  # pragma: no cover - a dependency; plain asyncio works too
+        pass
+    return asyncio.run(_main(args, config))
 
-    def _on_signal(signum: int, _frame: Any) -> None:
-        log.info("%s received: stopping", signal.Signals(signum).name)
-        stop.set()
-        if not started.is_set():
-            raise KeyboardInterrupt  # leave wait_ready() at once; cleanup runs below
 
+async def _main(args: argparse.Namespace, config: object) -> int:
+    from prometheus_client import CollectorRegistry, start_http_server
+
+    from server.frame import Size
+    from server.relay_process import RelayProcess
+    from server.session.runner import StreamingSession, StreamSettings
+    from server.stack import LocalStack, SessionConfig
+
+    assert isinstance(config, SessionConfig)
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, _on_signal)
+        loop.add_signal_handler(sig, stop.set)
 
+    relay = RelayProcess(args.host, args.port, args.web_root)
     stack = LocalStack(config)
-    preview: PreviewServer | None = None
+    session_task: asyncio.Task[None] | None = None
     code = 0
     try:
-        stack.start()
-        stack.wait_ready()
-        assert stack.ring_u is not None
-
-        def session_info() -> dict[str, Any]:
-            return {
-                "name": config.name,
-                "scene": config.scene,
-                "render_size": config.render_size,
-                "display_size": config.display_size,
-                "game_pid": stack.game.pid if stack.game is not None else None,
-                "worker_pid": stack.worker.pid if stack.worker is not None else None,
-                "worker_restarts": stack.worker_restarts,
-            }
-
-        preview = PreviewServer(
-            stack.ring_u,
-            stack.control_path,
-            stack.input_path,
-            args.host,
-            args.port,
-            args.preview_fps,
-            session_info=session_info,
-            on_upscaler_set=stack.remember_upscaler,
-        )
         try:
-            preview.start()
-        except OSError as exc:
-            preview = None
-            print(_bind_message(args.host, args.port, exc), file=sys.stderr)
+            endpoint = await loop.run_in_executor(None, relay.start)
+        except (RuntimeError, TimeoutError) as exc:
+            print(f"upcast up: relay failed to start on port {args.port}: {exc}", file=sys.stderr)
             return 1
-        started.set()
-        where = " (listening on all interfaces)" if args.host in ("0.0.0.0", "::", "") else ""
-        print(f"upcast is up: watch at {preview.url}{where}  (Ctrl-C to stop)", flush=True)
+        await loop.run_in_executor(None, stack.start)
+        await loop.run_in_executor(None, stack.wait_ready)
+        assert stack.ring_u is not None
+        registry = CollectorRegistry()
+        metrics_port = args.port + 1 if args.metrics_port is None else args.metrics_port
+        if metrics_port:
+            try:
+                start_http_server(metrics_port, registry=registry)
+            except OSError as exc:
+                log.warning("session metrics port %d unavailable: %s", metrics_port, exc)
+                metrics_port = 0
+        settings = StreamSettings(
+            relay_url=f"http://{_session_host(args.host)}:{endpoint.port}/",
+            broadcast=args.broadcast,
+            fps=config.fps,
+            bitrate=None if args.bitrate_kbps is None else args.bitrate_kbps * 1000,
+        )
+        session = StreamingSession(
+            settings,
+            stack.ring_u,
+            Size.parse(config.display_size),
+            game_input=stack.input_path,
+            worker_control=stack.control_path,
+            registry=registry,
+            on_upscaler_set=stack.remember_upscaler,
+            on_scale_request=lambda s: log.warning(
+                "scale %.2g requested: changing the render scale at run time is not supported"
+                " yet; restart with --render-size",
+                s,
+            ),
+        )
+        session_task = asyncio.create_task(session.run(stop), name="session")
+        try:
+            async with asyncio.timeout(CONNECT_TIMEOUT_S):
+                await session.connected.wait()
+        except TimeoutError:
+            print("upcast up: the session could not publish to the relay", file=sys.stderr)
+            return 1
+        host = _browser_host(args.host)
+        url = f"http://{host}:{endpoint.port}/?broadcast={args.broadcast}"
+        extras = f"; session metrics http://{host}:{metrics_port}/metrics" if metrics_port else ""
+        print(
+            f"upcast is up: watch at {url}  (relay metrics http://{host}:{endpoint.port}/metrics"
+            f"{extras}; Ctrl-C to stop)",
+            flush=True,
+        )
         deadline = None if args.duration is None else time.monotonic() + args.duration
-        while not stop.wait(CHECK_INTERVAL_S):
+        while not stop.is_set():
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(CHECK_INTERVAL_S):
+                    await stop.wait()
             stack.check_children()
+            if relay.check():
+                log.warning("relay restarted (restart #%d)", relay.restarts)
+            if session_task.done():
+                session_task.result()  # surfaces the error
+                break
             if deadline is not None and time.monotonic() >= deadline:
                 log.info("duration of %.0f s reached: stopping", args.duration)
                 break
-    except KeyboardInterrupt:
-        print("upcast up: interrupted while starting", file=sys.stderr)
-        code = 130
-    except TimeoutError as exc:
-        print(f"upcast up: {exc}", file=sys.stderr)
-        code = 1
     except RuntimeError as exc:  # the game died
         print(f"upcast up: {exc}", file=sys.stderr)
         code = 1
+    except TimeoutError as exc:
+        print(f"upcast up: {exc}", file=sys.stderr)
+        code = 1
     finally:
-        # A second Ctrl-C while cleaning up must not leave rings behind.
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, signal.SIG_IGN)
-        if preview is not None:
+        stop.set()
+        if session_task is not None:
             with contextlib.suppress(Exception):
-                preview.stop()
+                await session_task
         stack.stop()
+        relay.stop()
         log.info("upcast stopped; session %s cleaned up", config.name)
     return code

@@ -97,6 +97,10 @@ def look_input(message: LookMessage) -> InputMessage:
     )
 
 
+def _unit(v: float) -> float:
+    return max(-1.0, min(1.0, v))
+
+
 class HeldKeys:
     """The keys a viewer holds, turned into one movement step per game frame."""
 
@@ -110,8 +114,8 @@ class HeldKeys:
         for key in message.down:
             df, dr, du = KEY_DIRECTIONS.get(key.lower(), (0, 0, 0))
             f, r, u = f + df, r + dr, u + du
-        clamp = lambda v: max(-1.0, min(1.0, v))  # noqa: E731 - opposite keys cancel
-        self.direction = (clamp(f), clamp(r), clamp(u))
+        # Opposite keys cancel; two keys for one direction do not double the speed.
+        self.direction = (_unit(f), _unit(r), _unit(u))
         self.seq = max(self.seq, message.seq)
 
     @property

@@ -1,4 +1,4 @@
-"""``upcast up`` end to end (real processes) and the preview server on a test-fed ring."""
+"""``upcast preview`` end to end (real processes) and the preview server on a test-fed ring."""
 
 from __future__ import annotations
 
@@ -102,7 +102,7 @@ def session(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Session]:
     stderr_path = tmp_path_factory.mktemp("up") / "stderr.txt"
     # fmt: off
     cmd = [
-        sys.executable, "-m", "server.cli", "up", "--scene", "static",
+        sys.executable, "-m", "server.cli", "preview", "--scene", "static",
         "--render-size", RENDER, "--display-size", f"{DISPLAY[0]}x{DISPLAY[1]}",
         "--fps", "20", "--port", str(port), "--duration", "80",
     ]
@@ -121,10 +121,10 @@ def session(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Session]:
     try:
         deadline = time.monotonic() + BANNER_TIMEOUT_S
         banner = ""
-        while "upcast is up" not in banner:
+        while "upcast preview is up" not in banner:
             remaining = deadline - time.monotonic()
             if remaining <= 0 or proc.poll() is not None:
-                pytest.fail(f"no banner from `upcast up`; stderr:\n{sess.log()}")
+                pytest.fail(f"no banner from `upcast preview`; stderr:\n{sess.log()}")
             try:
                 banner = lines.get(timeout=min(remaining, 0.5))
             except queue.Empty:
@@ -270,7 +270,7 @@ def test_stop_cleans_up(session: Session) -> None:
 
 def _run_up(*args: str, timeout_s: float = 30.0) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
-        [sys.executable, "-m", "server.cli", "up", *args],
+        [sys.executable, "-m", "server.cli", "preview", *args],
         capture_output=True,
         text=True,
         timeout=timeout_s,
@@ -285,7 +285,7 @@ def test_port_in_use_is_named() -> None:
         done = _run_up("--port", str(port), "--duration", "5")
     assert done.returncode == 1
     assert f"port {port}" in done.stderr and "--port" in done.stderr
-    assert "upcast is up" not in done.stdout
+    assert "upcast preview is up" not in done.stdout
 
 
 def test_bad_config_names_the_field() -> None:
@@ -366,7 +366,7 @@ def test_duration_ends_the_session_cleanly() -> None:
     )
     # fmt: on
     assert done.returncode == 0, done.stderr[-3000:]
-    assert f"upcast is up: watch at http://127.0.0.1:{port}/" in done.stdout
+    assert f"upcast preview is up: watch at http://127.0.0.1:{port}/" in done.stdout
     name = done.stderr.split("session ", 1)[1].split(":", 1)[0]
     assert name.startswith("upcast-")
     assert sorted(p.name for p in SHM_DIR.glob(f"{name}*")) == []

@@ -1,0 +1,232 @@
+"""GameBroadcast: one game session's broadcast on a moq-lite session.
+
+It publishes three tracks and listens for viewers' inputs:
+
+- ``catalog.json``: the hang catalog (codec, size, the CMAF init segment); each
+  subscriber gets one group holding the whole JSON.
+- ``video``: one CMAF fragment (moof+mdat) per frame, a new group at each
+  keyframe, so any group is decodable from its first frame.
+- ``timing``: one JSON record per video frame, in groups numbered like the
+  video's (see timing_track.py).
+- inputs: viewers publish ``<name>/input/<id>`` broadcasts with an ``input``
+  track; we ask the peer (the relay) for announces under ``<name>/input`` and
+  subscribe to each one.
+
+The object drives a MoqSession and does no I/O, so it is tested over the
+in-memory pipe like the protocol code. A subscriber that arrives mid-group
+(the relay's first subscription) makes us ask the encoder for a keyframe and
+gets data from the next group on: a group never starts without its keyframe.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from server.encode import EncodedFrame
+from server.frame import FrameMeta
+from server.moq import paths
+from server.moq.errors import ErrorCode
+from server.moq.events import (
+    AnnounceReceived,
+    AnnouncesEnded,
+    Event,
+    FrameReceived,
+    GroupCancelled,
+    SubscribeCancelled,
+    SubscribeClosed,
+    SubscribeRequested,
+)
+from server.moq.session import MoqSession
+from server.session.timing_track import TRACK_NAME as TIMING_TRACK
+from server.session.timing_track import encode_timing, timing_record
+from server.timing import Stage, stamp
+
+log = logging.getLogger(__name__)
+
+CATALOG_TRACK = "catalog.json"
+VIDEO_TRACK = "video"
+INPUT_TRACK = "input"
+TRACKS = (CATALOG_TRACK, VIDEO_TRACK, TIMING_TRACK)
+MAX_INPUT_BROADCASTS = 64  # viewers sending input at once; more are ignored (and logged)
+
+
+@dataclass
+class _Subscriber:
+    track: str
+    group_stream: int | None = None  # the open group stream, None until the next group
+
+
+@dataclass
+class BroadcastStats:
+    frames_published: int = 0
+    groups: int = 0
+    input_frames: int = 0
+    input_broadcasts: int = 0
+    subscribers: dict[str, int] = field(default_factory=dict)
+
+
+class GameBroadcast:
+    def __init__(
+        self,
+        name: str,
+        catalog_json: bytes,
+        *,
+        on_input: Callable[[str, bytes], None],
+        on_keyframe_wanted: Callable[[], None],
+    ) -> None:
+        self.name = paths.normalize(name)
+        self.catalog_json = catalog_json
+        self.input_prefix = paths.join(self.name, "input")
+        self.stats = BroadcastStats()
+        self._on_input = on_input
+        self._on_keyframe_wanted = on_keyframe_wanted
+        self._session: MoqSession | None = None
+        self._subscribers: dict[int, _Subscriber] = {}  # request id -> state
+        self._input_interest: int | None = None
+        self._inputs: dict[int, str] = {}  # our subscription id -> input broadcast path
+        self._input_paths: dict[str, int] = {}
+        self._group_seq = -1  # sequence of the current video/timing group
+        self._catalog_seq = 0
+        self._published = 0  # frames published: the timing records' ``n``
+
+    # -- session lifecycle ------------------------------------------------------------
+
+    def attach(self, session: MoqSession) -> None:
+        """Publish on a (new) session, e.g. after reconnecting to the relay."""
+        self._session = session
+        self._subscribers.clear()
+        self._inputs.clear()
+        self._input_paths.clear()
+        session.publish(self.name)
+        self._input_interest = session.request_announces(self.input_prefix)
+
+    def detach(self) -> None:
+        self._session = None
+        self._subscribers.clear()
+        self._inputs.clear()
+        self._input_paths.clear()
+
+    # -- events from the session ---------------------------------------------------------
+
+    def handle(self, events: list[Event]) -> None:
+        for event in events:
+            if isinstance(event, SubscribeRequested):
+                self._on_subscribe(event)
+            elif isinstance(event, SubscribeCancelled):
+                self._subscribers.pop(event.request_id, None)
+            elif isinstance(event, GroupCancelled):
+                sub = self._subscribers.get(event.request_id)
+                if sub is not None and sub.group_stream == event.stream_id:
+                    sub.group_stream = None  # the peer skipped this group: resume at the next
+            elif isinstance(event, AnnounceReceived) and event.handle == self._input_interest:
+                self._on_input_announce(event)
+            elif isinstance(event, AnnouncesEnded) and event.handle == self._input_interest:
+                self._input_interest = None
+            elif isinstance(event, FrameReceived) and event.subscription_id in self._inputs:
+                self.stats.input_frames += 1
+                self._on_input(self._inputs[event.subscription_id], event.payload)
+            elif isinstance(event, SubscribeClosed) and event.subscription_id in self._inputs:
+                path = self._inputs.pop(event.subscription_id)
+                self._input_paths.pop(path, None)
+        self._count_subscribers()
+
+    def _on_subscribe(self, e: SubscribeRequested) -> None:
+        session = self._session
+        assert session is not None
+        if paths.normalize(e.broadcast) != self.name or e.track not in TRACKS:
+            log.info("refusing subscribe to %s/%s: no such track", e.broadcast, e.track)
+            session.reject_subscribe(e.request_id, ErrorCode.NOT_FOUND)
+            return
+        if not session.accept_subscribe(e.request_id):
+            return
+        sub = _Subscriber(e.track)
+        self._subscribers[e.request_id] = sub
+        log.info("subscriber %d for track %s", e.request_id, e.track)
+        if e.track == CATALOG_TRACK:
+            self._send_catalog(e.request_id, sub)
+        else:
+            self._on_keyframe_wanted()
+
+    def _send_catalog(self, request_id: int, sub: _Subscriber) -> None:
+        session = self._session
+        assert session is not None
+        stream = session.open_group(request_id, self._catalog_seq)
+        if stream is None:
+            return
+        session.write_frame(stream, self.catalog_json)
+        session.finish_group(stream)
+
+    def set_catalog(self, catalog_json: bytes) -> None:
+        """A new catalog (size or codec changed): a new group for every subscriber."""
+        self.catalog_json = catalog_json
+        self._catalog_seq += 1
+        for request_id, sub in list(self._subscribers.items()):
+            if sub.track == CATALOG_TRACK:
+                self._send_catalog(request_id, sub)
+
+    def _on_input_announce(self, e: AnnounceReceived) -> None:
+        session = self._session
+        assert session is not None
+        path = paths.normalize(e.path)
+        if paths.strip_prefix(self.input_prefix, path) in (None, ""):
+            return
+        if e.active and path not in self._input_paths:
+            if len(self._input_paths) >= MAX_INPUT_BROADCASTS:
+                log.warning("ignoring input broadcast %s: %d already", path, len(self._input_paths))
+                return
+            subscription = session.subscribe(path, INPUT_TRACK, priority=255)
+            self._inputs[subscription] = path
+            self._input_paths[path] = subscription
+            self.stats.input_broadcasts += 1
+            log.info("viewer input from %s", path)
+        elif not e.active and path in self._input_paths:
+            subscription = self._input_paths.pop(path)
+            self._inputs.pop(subscription, None)
+            session.unsubscribe(subscription)
+
+    def _count_subscribers(self) -> None:
+        counts = dict.fromkeys(TRACKS, 0)
+        for sub in self._subscribers.values():
+            counts[sub.track] += 1
+        self.stats.subscribers = counts
+
+    # -- media ---------------------------------------------------------------------------
+
+    def publish_frame(self, encoded: EncodedFrame, meta: FrameMeta) -> None:
+        """Put one encoded frame and its timing record on every subscriber's group.
+
+        Stamps ``publish`` on ``meta`` right before the fragment goes to QUIC."""
+        if encoded.keyframe:
+            self._group_seq += 1
+            self.stats.groups += 1
+        session = self._session
+        n = self._published
+        self._published += 1
+        self.stats.frames_published += 1
+        if session is None or session.closed:
+            return
+        video = [(r, s) for r, s in self._subscribers.items() if s.track == VIDEO_TRACK]
+        timing = [(r, s) for r, s in self._subscribers.items() if s.track == TIMING_TRACK]
+        self._advance_groups(session, video + timing, encoded.keyframe)
+        stamp(meta.stamps, Stage.PUBLISH)
+        for _, sub in video:
+            if sub.group_stream is not None:
+                session.write_frame(sub.group_stream, encoded.fragment)
+        if timing:
+            record = timing_record(meta, n=n, pts_us=encoded.pts_us, keyframe=encoded.keyframe)
+            payload = encode_timing(record)
+            for _, sub in timing:
+                if sub.group_stream is not None:
+                    session.write_frame(sub.group_stream, payload)
+
+    def _advance_groups(
+        self, session: MoqSession, subs: list[tuple[int, _Subscriber]], keyframe: bool
+    ) -> None:
+        if not keyframe or self._group_seq < 0:
+            return
+        for request_id, sub in subs:
+            if sub.group_stream is not None:
+                session.finish_group(sub.group_stream)
+            sub.group_stream = session.open_group(request_id, self._group_seq)

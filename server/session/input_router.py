@@ -1,0 +1,130 @@
+"""Where each viewer message goes: the game's input socket, the worker's control
+socket, or the encoder.
+
+Runs on the session's event loop. Game inputs are one Unix datagram each
+(microseconds, never blocking: the socket is the game's queue). Upscaler
+switches wait for the worker's reply, so they run on the default executor and
+their outcome is logged; a missing worker never blocks the loop.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+from server.control import SetUpscaler, send_control
+from server.game_input import InputMessage, send_input
+from server.session.viewer_input import (
+    BadViewerMessage,
+    ControlMessage,
+    HeldKeys,
+    KeyframeMessage,
+    KeysMessage,
+    LookMessage,
+    look_input,
+    parse_viewer_message,
+)
+from upscalers import registry
+
+log = logging.getLogger(__name__)
+
+MAX_HELD = 64  # viewers whose held keys we track
+
+
+class InputRouter:
+    def __init__(
+        self,
+        *,
+        game_input: Path | None,
+        worker_control: Path | None,
+        request_keyframe: Callable[[], None],
+        on_upscaler_set: Callable[[str], None] | None = None,
+        on_scale_request: Callable[[float], None] | None = None,
+    ) -> None:
+        self.game_input = game_input
+        self.worker_control = worker_control
+        self.request_keyframe = request_keyframe
+        self.on_upscaler_set = on_upscaler_set
+        self.on_scale_request = on_scale_request
+        self.held: dict[str, HeldKeys] = {}
+        self.accepted = 0
+        self.refused = 0
+        self._last_tick = time.monotonic()
+
+    def handle(self, source: str, payload: bytes) -> None:
+        """One frame from viewer broadcast ``source``; bad ones are counted and logged."""
+        try:
+            message = parse_viewer_message(payload)
+        except BadViewerMessage as exc:
+            self.refused += 1
+            log.warning("input from %s refused: %s", source, exc)
+            return
+        self.accepted += 1
+        if isinstance(message, LookMessage):
+            self._to_game(look_input(message))
+        elif isinstance(message, KeysMessage):
+            held = self.held.get(source)
+            if held is None:
+                if len(self.held) >= MAX_HELD:
+                    return
+                held = self.held[source] = HeldKeys()
+            held.update(message)
+            # Move at once, so the press shows in the very next frame (input-to-photon).
+            step = held.step(1 / 60)
+            if step is not None:
+                self._to_game(step)
+        elif isinstance(message, ControlMessage):
+            self._control(source, message)
+        elif isinstance(message, KeyframeMessage):
+            self.request_keyframe()
+
+    def forget(self, source: str) -> None:
+        """The viewer left: its held keys are released."""
+        self.held.pop(source, None)
+
+    def tick(self) -> None:
+        """Called once per game frame: held keys keep moving the camera."""
+        now = time.monotonic()
+        dt = now - self._last_tick
+        self._last_tick = now
+        for held in self.held.values():
+            step = held.step(dt)
+            if step is not None:
+                self._to_game(step)
+
+    def _to_game(self, message: InputMessage) -> None:
+        if self.game_input is None:
+            return
+        try:
+            send_input(self.game_input, message)
+        except OSError as exc:  # the game is restarting: inputs meanwhile are lost
+            log.debug("game input socket: %s", exc)
+
+    def _control(self, source: str, message: ControlMessage) -> None:
+        if message.upscaler is not None:
+            if message.upscaler not in registry.available():
+                log.warning("input from %s: unknown upscaler %r", source, message.upscaler)
+            elif self.worker_control is not None:
+                asyncio.get_running_loop().create_task(self._set_upscaler(message.upscaler))
+        if message.scale is not None and self.on_scale_request is not None:
+            self.on_scale_request(message.scale)
+
+    async def _set_upscaler(self, name: str) -> None:
+        assert self.worker_control is not None
+        loop = asyncio.get_running_loop()
+        try:
+            reply = await loop.run_in_executor(
+                None, send_control, self.worker_control, SetUpscaler(name=name)
+            )
+        except (OSError, TimeoutError) as exc:
+            log.warning("upscaler switch to %s failed: %s", name, exc)
+            return
+        if reply.get("ok"):
+            log.info("upscaler switched to %s", name)
+            if self.on_upscaler_set is not None:
+                self.on_upscaler_set(name)
+        else:
+            log.warning("worker refused upscaler %s: %s", name, reply.get("error"))

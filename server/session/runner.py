@@ -1,0 +1,179 @@
+"""StreamingSession: ring U -> CMAF encoder -> moq-lite broadcast on a relay, inputs back.
+
+One asyncio loop (uvloop in the CLI) runs the relay connection, the input
+router and the monitor; encoding runs on the capture thread (capture.py), which
+hands each fragment to the loop. The relay connection is retried with backoff:
+a relay restart costs the viewers a reconnect, never the game a stall (the
+capture thread keeps draining ring U and dropping frames nobody can receive).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+from prometheus_client import CollectorRegistry
+
+from server.catalog import catalog_for
+from server.encode import EncoderConfig, VideoEncoder
+from server.frame import Size
+from server.monitor import FrameRateMonitor
+from server.moq.events import Event
+from server.moq_link import MoqLink, connect_moq
+from server.quic.client import WtConnectError
+from server.ring import FrameRing
+from server.session.broadcast import GameBroadcast
+from server.session.capture import CapturedFrame, CaptureThread
+from server.session.input_router import InputRouter
+
+log = logging.getLogger(__name__)
+
+RECONNECT_MIN_S = 0.25
+RECONNECT_MAX_S = 5.0
+MONITOR_INTERVAL_S = 2.0
+
+
+@dataclass(frozen=True)
+class StreamSettings:
+    relay_url: str
+    broadcast: str = "game"
+    fps: float = 60.0
+    bitrate: int | None = None  # bit/s; None: scaled from 6 Mbit/s at 720p60
+    gop_seconds: float = 2.0
+    cert_hash_hex: str | None = None  # pin the relay's certificate (else fetched over http)
+
+
+class StreamingSession:
+    def __init__(
+        self,
+        settings: StreamSettings,
+        ring_u: FrameRing,
+        display: Size,
+        *,
+        game_input: Path | None = None,
+        worker_control: Path | None = None,
+        registry: CollectorRegistry | None = None,
+        on_upscaler_set: Callable[[str], None] | None = None,
+        on_scale_request: Callable[[float], None] | None = None,
+        frame_tap: Callable[[int, npt.NDArray[np.uint8]], None] | None = None,
+    ) -> None:
+        self.settings = settings
+        self._frame_tap = frame_tap
+        self.ring_u = ring_u
+        self.encoder = VideoEncoder(
+            EncoderConfig(
+                width=display.width,
+                height=display.height,
+                fps=settings.fps,
+                bitrate=settings.bitrate,
+                gop_seconds=settings.gop_seconds,
+            )
+        )
+        self.monitor = FrameRateMonitor("session", settings.fps, registry=registry)
+        self.router = InputRouter(
+            game_input=game_input,
+            worker_control=worker_control,
+            request_keyframe=self.encoder.request_keyframe,
+            on_upscaler_set=on_upscaler_set,
+            on_scale_request=on_scale_request,
+        )
+        self.broadcast = GameBroadcast(
+            settings.broadcast,
+            catalog_for(self.encoder).to_json(),
+            on_input=self.router.handle,
+            on_keyframe_wanted=self.encoder.request_keyframe,
+        )
+        self.link: MoqLink | None = None
+        self.connected = asyncio.Event()
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._capture: CaptureThread | None = None
+        self._skipped_seen = 0
+
+    # -- running ---------------------------------------------------------------------
+
+    async def run(self, stop: asyncio.Event) -> None:
+        self._loop = asyncio.get_running_loop()
+        self._capture = CaptureThread(
+            self.ring_u, self.encoder, self._from_capture_thread, frame_tap=self._frame_tap
+        )
+        self._capture.start()
+        tasks = [
+            asyncio.create_task(self._relay_loop(stop), name="session-relay"),
+            asyncio.create_task(self._tick_loop(stop), name="session-inputs"),
+            asyncio.create_task(self._monitor_loop(stop), name="session-monitor"),
+        ]
+        try:
+            await stop.wait()
+        finally:
+            for task in tasks:
+                task.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
+            self._capture.stop()
+            if self.link is not None and not self.link.closed:
+                self.link.close(0, "session ending")
+
+    def _from_capture_thread(self, frame: CapturedFrame) -> None:
+        loop = self._loop
+        if loop is not None and not loop.is_closed():
+            loop.call_soon_threadsafe(self._publish, frame)
+
+    def _publish(self, frame: CapturedFrame) -> None:
+        self.broadcast.publish_frame(frame.encoded, frame.meta)
+        link = self.link
+        if link is not None and not link.closed:
+            link.flush()
+        capture = self._capture
+        skipped = 0
+        if capture is not None:
+            skipped = capture.stats.skipped - self._skipped_seen
+            self._skipped_seen = capture.stats.skipped
+        self.monitor.frame(frame.meta.stamps, dropped=skipped)
+
+    def _on_events(self, link: MoqLink, events: list[Event]) -> None:
+        self.broadcast.handle(events)
+
+    async def _relay_loop(self, stop: asyncio.Event) -> None:
+        delay = RECONNECT_MIN_S
+        url = self.settings.relay_url
+        while not stop.is_set():
+            try:
+                link = await connect_moq(
+                    url, on_events=self._on_events, cert_hash_hex=self.settings.cert_hash_hex
+                )
+            except (WtConnectError, OSError, TimeoutError) as exc:
+                log.warning("relay %s unreachable (%s); retrying in %.1f s", url, exc, delay)
+                await asyncio.sleep(delay)
+                delay = min(RECONNECT_MAX_S, delay * 2)
+                continue
+            delay = RECONNECT_MIN_S
+            self.link = link
+            self.broadcast.attach(link.moq)
+            link.pump()
+            self.connected.set()
+            log.info("publishing broadcast %r on %s", self.settings.broadcast, url)
+            reason = await link.wait_closed()
+            self.connected.clear()
+            self.broadcast.detach()
+            self.link = None
+            for source in list(self.router.held):
+                self.router.forget(source)
+            if not stop.is_set():
+                log.warning("relay connection lost (%s); reconnecting", reason)
+
+    async def _tick_loop(self, stop: asyncio.Event) -> None:
+        period = 1.0 / self.settings.fps
+        while not stop.is_set():
+            await asyncio.sleep(period)
+            self.router.tick()
+
+    async def _monitor_loop(self, stop: asyncio.Event) -> None:
+        while not stop.is_set():
+            await asyncio.sleep(MONITOR_INTERVAL_S)
+            self.monitor.check_budgets()
+            snap = self.monitor.snapshot()
+            log.debug("session: %s", snap.as_dict())

@@ -1,0 +1,58 @@
+"""The ``timing`` track: one JSON frame per video frame with its stage stamps.
+
+Stamps are wall-clock microseconds (the monotonic ones mean nothing outside
+this machine), keyed by the stage labels of ``server/timing.py``, only for
+stages the frame reached. The browser and the load test add their own stages
+(``client_receive``...) and compute every span the same way the server does.
+``pts_us`` ties the record to the video frame (the CMAF decode time); ``n``
+counts published frames so a viewer can tell what it lost.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+from server.frame import FrameFlags, FrameMeta
+from server.timing import Stage
+
+TRACK_NAME = "timing"
+
+
+def timing_record(meta: FrameMeta, *, n: int, pts_us: int, keyframe: bool) -> dict[str, Any]:
+    """``n`` counts published frames (0, 1, 2, ...): a gap is a frame a viewer lost."""
+    stamps: dict[str, int] = {}
+    for stage in Stage:
+        wall_ns = int(meta.stamps[stage, 1])
+        if wall_ns:
+            stamps[stage.label] = wall_ns // 1000
+    return {
+        "frame": meta.frame_id,
+        "n": n,
+        "pts_us": pts_us,
+        "keyframe": keyframe,
+        "predicted": bool(meta.flags & FrameFlags.PREDICTED),
+        "input_seq": meta.input_seq,
+        "stamps": stamps,
+    }
+
+
+def encode_timing(record: dict[str, Any]) -> bytes:
+    return json.dumps(record, separators=(",", ":")).encode()
+
+
+def decode_timing(payload: bytes) -> dict[str, Any]:
+    """Parse one timing frame; ValueError if it is not a timing record."""
+    record = json.loads(payload)
+    if not isinstance(record, dict) or not isinstance(record.get("stamps"), dict):
+        raise ValueError("not a timing record")
+    return record
+
+
+def span_ms(record: dict[str, Any], start: str, end: str) -> float | None:
+    """Milliseconds between two wall-clock stamps of a record, None if one is missing."""
+    stamps = record["stamps"]
+    a, b = stamps.get(start), stamps.get(end)
+    if not isinstance(a, int) or not isinstance(b, int):
+        return None
+    return (b - a) / 1000.0
