@@ -35,6 +35,8 @@ class FrameRenderer(Protocol):
 
     def apply_input(self, event: Any) -> None: ...
 
+    def set_render_size(self, render_size: Size, scale: float) -> None: ...
+
 
 @dataclass
 class GameStats:
@@ -45,7 +47,14 @@ class GameStats:
 
 
 class GameLoop:
-    def __init__(self, renderer: FrameRenderer, ring: FrameRing, fps: float) -> None:
+    def __init__(
+        self,
+        renderer: FrameRenderer,
+        ring: FrameRing,
+        fps: float,
+        *,
+        display_size: Size | None = None,
+    ) -> None:
         if fps <= 0:
             raise ValueError(f"fps must be positive, got {fps}")
         ring.require_fits(*renderer.render_size, what="render size")
@@ -55,11 +64,34 @@ class GameLoop:
         self.stats = GameStats()
         self._inputs: queue.SimpleQueue[tuple[Any, int]] = queue.SimpleQueue()
         self.input_seq = 0  # last applied player input (see FrameMeta.input_seq)
+        # The size the worker upscales to; render size = display / scale.
+        self.display_size = display_size
+        self._wanted_scale: float | None = None
         ring.attach_as_producer()
 
     def push_input(self, event: Any, seq: int = 0) -> None:
         """Queue an input event (thread-safe); applied at the start of the next frame."""
         self._inputs.put((event, seq))
+
+    def request_scale(self, scale: float) -> None:
+        """Change the render scale from the next frame on (thread-safe)."""
+        if self.display_size is None:
+            log.warning("scale change ignored: the game does not know the display size")
+            return
+        self._wanted_scale = scale
+
+    def _apply_scale(self) -> None:
+        scale, self._wanted_scale = self._wanted_scale, None
+        if scale is None or self.display_size is None:
+            return
+        w, h = self.display_size
+        # Even sizes: the encoder downstream works on 4:2:0 chroma.
+        size = Size(max(2, round(w / scale / 2) * 2), max(2, round(h / scale / 2) * 2))
+        if size == self.renderer.render_size:
+            return
+        self.ring.require_fits(*size, what="render size")
+        self.renderer.set_render_size(size, scale)
+        log.info("render scale %.3g: rendering at %s for %s", scale, size, self.display_size)
 
     def _drain_inputs(self) -> None:
         while True:
@@ -73,6 +105,7 @@ class GameLoop:
     def step(self, frame_index: int) -> bool:
         """Render one frame into ring R. False if no slot came in time (frame dropped)."""
         render_start = time.monotonic_ns(), time.time_ns()
+        self._apply_scale()
         self._drain_inputs()
         # Real-time rings never make the game wait; a lossless ring may, briefly.
         lease = self.ring.acquire_write(timeout_s=1.0 / self.fps)

@@ -39,6 +39,8 @@ class InputMessage(BaseModel):
     # The sender's sequence number; the game writes the last one it applied into
     # every frame header (input_seq) so clients can measure input-to-photon latency.
     seq: int = Field(default=0, ge=0, lt=1 << 62)
+    # Render scale (display / render size) wanted from the next frame on; None: unchanged.
+    render_scale: float | None = Field(default=None, ge=1.0, le=4.0, allow_inf_nan=False)
 
     def to_event(self) -> CameraInput:
         return CameraInput(self.dyaw_deg, self.dpitch_deg, self.forward, self.right, self.up)
@@ -47,7 +49,12 @@ class InputMessage(BaseModel):
 class InputReceiver:
     """Binds ``path`` and hands every valid event and its seq to ``sink`` from a daemon thread."""
 
-    def __init__(self, path: Path, sink: Callable[[CameraInput, int], None]) -> None:
+    def __init__(
+        self,
+        path: Path,
+        sink: Callable[[CameraInput, int], None],
+        on_scale: Callable[[float], None] | None = None,
+    ) -> None:
         self.path = path
         self.accepted = 0
         self.refused = 0
@@ -56,6 +63,7 @@ class InputReceiver:
         self._sock.bind(str(path))
         self._sock.settimeout(0.2)
         self._sink = sink
+        self._on_scale = on_scale
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._loop, name="game-input", daemon=True)
         self._thread.start()
@@ -77,6 +85,8 @@ class InputReceiver:
                 log.warning("input refused: %s", str(exc).splitlines()[0])
                 continue
             self.accepted += 1
+            if message.render_scale is not None and self._on_scale is not None:
+                self._on_scale(message.render_scale)
             self._sink(message.to_event(), message.seq)
 
     def close(self) -> None:

@@ -6,7 +6,7 @@ import threading
 
 import numpy as np
 
-from server.frame import Size
+from server.frame import FrameFlags, Size
 from server.game import GameLoop
 from server.render.camera import CameraInput
 from server.render.renderer import Renderer
@@ -48,4 +48,23 @@ def test_stamps_are_ordered_and_input_moves_camera(ring_name: str) -> None:
         assert not np.allclose(second.meta.camera.view, view_before, atol=1e-3)
         # the header says which input the frame already shows (input-to-photon latency)
         assert second.meta.input_seq == 7
+    ring.close()
+
+
+def test_scale_change_renders_a_new_size_from_a_reset_frame(ring_name: str) -> None:
+    display = Size(192, 108)
+    ring = create_render_ring(ring_name, display)
+    loop = GameLoop(Renderer("static", SIZE), ring, fps=60.0, display_size=display)
+    assert loop.step(0) and loop.step(1)
+    loop.request_scale(3.0)
+    assert loop.step(2)
+    sizes_and_flags = []
+    for _ in range(3):
+        lease = ring.acquire_read(1.0)
+        assert lease is not None
+        with lease:
+            frame = render_frame_of(lease)
+            sizes_and_flags.append((frame.size, bool(frame.meta.flags & FrameFlags.RESET)))
+    # Real-time ring of 3 slots: all three frames are still there, oldest first.
+    assert sizes_and_flags == [(SIZE, True), (SIZE, False), (Size(64, 36), True)]
     ring.close()

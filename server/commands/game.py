@@ -38,8 +38,13 @@ def run(args: argparse.Namespace) -> int:
         signal.signal(sig, lambda *_: stop.set())
     renderer = Renderer(args.scene, Size.parse(args.size), seed=args.seed, scale=args.scale)
     ring = attach_render_ring(args.ring, wait_s=10)
-    loop = GameLoop(renderer, ring, args.fps)
-    receiver = InputReceiver(args.input, loop.push_input) if args.input else None
+    display = Size.parse(args.size).scaled(args.scale)
+    loop = GameLoop(renderer, ring, args.fps, display_size=display)
+    receiver = (
+        InputReceiver(args.input, loop.push_input, on_scale=loop.request_scale)
+        if args.input
+        else None
+    )
     log.info("game: scene %s at %s, %.0f fps into %s", args.scene, args.size, args.fps, args.ring)
     try:
         stats = loop.run(stop, duration_s=args.duration)

@@ -165,11 +165,6 @@ async def _main(args: argparse.Namespace, config: object) -> int:
             worker_control=stack.control_path,
             registry=registry,
             on_upscaler_set=stack.remember_upscaler,
-            on_scale_request=lambda s: log.warning(
-                "scale %.2g requested: changing the render scale at run time is not supported"
-                " yet; restart with --render-size",
-                s,
-            ),
         )
         session_task = asyncio.create_task(session.run(stop), name="session")
         try:

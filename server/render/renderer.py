@@ -128,6 +128,17 @@ class Renderer:
         """Player input, applied from the next rendered frame on."""
         self.game_camera.apply_input(event)
 
+    def set_render_size(self, render_size: Size, scale: float) -> None:
+        """Render at another size from the next frame on (the player changed the scale).
+
+        The next frame is a RESET frame: its motion vectors and every upscaler's
+        history refer to the old size, so temporal methods must restart."""
+        if self.jitter:
+            self.jitter_phases = jitter_phase_count(scale)
+        self.render_size = Size(*render_size)
+        self.scale = scale
+        self._last_t = None
+
     def jitter_for(self, frame_index: int) -> tuple[float, float]:
         return jitter_offset(frame_index, self.jitter_phases) if self.jitter else (0.0, 0.0)
 

@@ -109,8 +109,13 @@ class InputRouter:
                 log.warning("input from %s: unknown upscaler %r", source, message.upscaler)
             elif self.worker_control is not None:
                 asyncio.get_running_loop().create_task(self._set_upscaler(message.upscaler))
-        if message.scale is not None and self.on_scale_request is not None:
-            self.on_scale_request(message.scale)
+        if message.scale is not None:
+            # The game renders at display / scale from its next frame; the worker
+            # upscales whatever size arrives, and the RESET flag restarts history.
+            self._to_game(InputMessage(render_scale=message.scale, seq=message.seq))
+            log.info("render scale %.3g requested by %s", message.scale, source)
+            if self.on_scale_request is not None:
+                self.on_scale_request(message.scale)
 
     async def _set_upscaler(self, name: str) -> None:
         assert self.worker_control is not None

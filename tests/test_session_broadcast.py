@@ -1,0 +1,137 @@
+"""GameBroadcast over the in-memory moq pipe: tracks, groups at keyframes, timing, inputs."""
+
+from __future__ import annotations
+
+import json
+
+from server.encode import EncodedFrame
+from server.frame import Camera, FrameMeta
+from server.moq import events as ev
+from server.session.broadcast import GameBroadcast
+from server.timing import Stage, stamp
+from tests.moq_pipe import Pipe
+
+CATALOG = b'{"video":{"renditions":{}}}'
+
+
+class Harness:
+    def __init__(self) -> None:
+        self.pipe = Pipe()
+        self.inputs: list[tuple[str, bytes]] = []
+        self.keyframe_requests = 0
+        self.broadcast = GameBroadcast(
+            "game",
+            CATALOG,
+            on_input=lambda path, payload: self.inputs.append((path, payload)),
+            on_keyframe_wanted=self._want_keyframe,
+        )
+        self.broadcast.attach(self.pipe.client)
+        self.relay_events: list[ev.Event] = []
+        self.sync()
+
+    def _want_keyframe(self) -> None:
+        self.keyframe_requests += 1
+
+    def sync(self) -> None:
+        for _ in range(10):
+            self.pipe.flush()
+            self.broadcast.handle(self.pipe.client.take_events())
+            self.relay_events += self.pipe.server.take_events()
+            if not self.pipe.flush():
+                break
+
+    def frames(self, subscription: int) -> list[tuple[int, bytes]]:
+        return [
+            (e.sequence, e.payload)
+            for e in self.relay_events
+            if isinstance(e, ev.FrameReceived) and e.subscription_id == subscription
+        ]
+
+    def publish(self, frame_id: int, keyframe: bool) -> FrameMeta:
+        meta = FrameMeta(frame_id, Camera.identity(), input_seq=frame_id * 10)
+        stamp(meta.stamps, Stage.RENDER_START)
+        stamp(meta.stamps, Stage.RENDER_END)
+        encoded = EncodedFrame(
+            frame_id, frame_id * 1000, keyframe, f"frag{frame_id}".encode(), 1.0, 0.1, 0.9
+        )
+        self.broadcast.publish_frame(encoded, meta)
+        self.sync()
+        return meta
+
+
+def test_relay_learns_the_broadcast_and_gets_the_catalog() -> None:
+    h = Harness()
+    interest = h.pipe.server.request_announces("")
+    h.sync()
+    announces = [e for e in h.relay_events if isinstance(e, ev.AnnounceReceived)]
+    assert [(a.handle, a.path, a.active) for a in announces] == [(interest, "game", True)]
+    sub = h.pipe.server.subscribe("game", "catalog.json")
+    h.sync()
+    assert h.frames(sub) == [(0, CATALOG)]
+    closed = [e for e in h.relay_events if isinstance(e, ev.GroupClosed)]
+    assert closed and closed[0].complete
+    # A new catalog (say, a new size) reaches subscribers as a new group.
+    h.broadcast.set_catalog(b"{}")
+    h.sync()
+    assert h.frames(sub)[-1] == (1, b"{}")
+
+
+def test_video_groups_start_at_keyframes_and_timing_follows() -> None:
+    h = Harness()
+    video = h.pipe.server.subscribe("game", "video")
+    timing = h.pipe.server.subscribe("game", "timing")
+    h.sync()
+    assert h.keyframe_requests == 2  # each new subscriber asks for a keyframe
+    h.publish(1, keyframe=False)  # mid-group: nothing until a keyframe, never a broken group
+    assert h.frames(video) == []
+    metas = [h.publish(2, keyframe=True), h.publish(3, keyframe=False)]
+    h.publish(4, keyframe=True)
+    assert h.frames(video) == [(0, b"frag2"), (0, b"frag3"), (1, b"frag4")]
+    records = [json.loads(p) for _, p in h.frames(timing)]
+    assert [r["frame"] for r in records] == [2, 3, 4]
+    assert [r["n"] for r in records] == [1, 2, 3]  # frame 1 was published too (n=0)
+    assert [r["pts_us"] for r in records] == [2000, 3000, 4000]
+    assert records[0]["keyframe"] and not records[1]["keyframe"]
+    assert records[1]["input_seq"] == 30
+    stamps = records[0]["stamps"]
+    assert stamps["render_start"] <= stamps["render_end"] <= stamps["publish"]
+    assert metas[0].stamps[Stage.PUBLISH, 0] > 0  # publish is stamped on the frame itself
+    groups_done = [e for e in h.relay_events if isinstance(e, ev.GroupClosed) and e.sequence == 0]
+    assert len(groups_done) == 2 and all(g.complete for g in groups_done)
+
+
+def test_unknown_track_or_broadcast_is_refused_and_the_session_goes_on() -> None:
+    h = Harness()
+    bad_track = h.pipe.server.subscribe("game", "audio")
+    bad_broadcast = h.pipe.server.subscribe("other", "video")
+    video = h.pipe.server.subscribe("game", "video")
+    h.sync()
+    refused = {
+        e.subscription_id
+        for e in h.relay_events
+        if isinstance(e, ev.SubscribeClosed) and not e.accepted
+    }
+    assert refused == {bad_track, bad_broadcast}
+    h.publish(1, keyframe=True)
+    assert h.frames(video) == [(0, b"frag1")]
+
+
+def test_viewer_input_broadcasts_are_subscribed_and_delivered() -> None:
+    h = Harness()
+    h.pipe.server.publish("game/input/v1")
+    h.pipe.server.publish("elsewhere/input/v2")  # not under game/input: ignored
+    h.sync()
+    requests = [e for e in h.relay_events if isinstance(e, ev.SubscribeRequested)]
+    assert [(r.broadcast, r.track) for r in requests] == [("game/input/v1", "input")]
+    request_id = requests[0].request_id
+    assert h.pipe.server.accept_subscribe(request_id)
+    group = h.pipe.server.open_group(request_id, 0)
+    assert group is not None
+    h.pipe.server.write_frame(group, b'{"type":"keyframe"}')
+    h.sync()
+    assert h.inputs == [("game/input/v1", b'{"type":"keyframe"}')]
+    # The viewer leaves: its input subscription is dropped.
+    h.pipe.server.unpublish("game/input/v1")
+    h.sync()
+    assert h.broadcast.stats.input_broadcasts == 1
+    assert h.broadcast._input_paths == {}
