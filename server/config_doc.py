@@ -9,10 +9,12 @@ from pydantic import BaseModel
 from pydantic_core import PydanticUndefined
 
 from server.stack import SessionConfig
+from server.stream_config import StreamConfig
 from server.worker import WorkerConfig
 
 DOCUMENTED: tuple[tuple[str, type[BaseModel]], ...] = (
     ("upcast up (SessionConfig)", SessionConfig),
+    ("upcast up, streaming (StreamConfig)", StreamConfig),
     ("upcast worker (WorkerConfig)", WorkerConfig),
 )
 

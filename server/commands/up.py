@@ -17,6 +17,11 @@ import signal
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from server.stack import SessionConfig
+    from server.stream_config import StreamConfig
 
 log = logging.getLogger(__name__)
 
@@ -43,6 +48,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="video bitrate (default: scaled 6 Mbit/s 720p60)",
     )
     parser.add_argument(
+        "--gop-seconds", type=float, default=2.0, help="periodic keyframe interval (seconds)"
+    )
+    parser.add_argument(
         "--metrics-port",
         type=int,
         default=None,
@@ -57,14 +65,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _problem(args: argparse.Namespace) -> str | None:
-    if not 1 <= args.port <= 65535:
-        return f"--port must be 1..65535, got {args.port}"
-    if args.metrics_port is not None and not 0 <= args.metrics_port <= 65535:
-        return f"--metrics-port must be 0..65535, got {args.metrics_port}"
     if args.duration is not None and args.duration <= 0:
         return f"--duration must be positive, got {args.duration}"
-    if args.bitrate_kbps is not None and args.bitrate_kbps < 100:
-        return f"--bitrate-kbps must be at least 100, got {args.bitrate_kbps}"
     if not (args.web_root / "index.html").is_file():
         return (
             f"the web client is not built ({args.web_root}/index.html missing): "
@@ -91,6 +93,7 @@ def run(args: argparse.Namespace) -> int:
 
     from server.config_errors import format_validation_error
     from server.stack import SessionConfig
+    from server.stream_config import StreamConfig
 
     problem = _problem(args)
     if problem is not None:
@@ -108,29 +111,40 @@ def run(args: argparse.Namespace) -> int:
         print(format_validation_error("session", exc), file=sys.stderr)
         return 2
     try:
+        stream = StreamConfig(
+            host=args.host,
+            port=args.port,
+            broadcast=args.broadcast,
+            bitrate_kbps=args.bitrate_kbps,
+            gop_seconds=args.gop_seconds,
+            metrics_port=args.metrics_port,
+        )
+    except ValidationError as exc:
+        print(format_validation_error("stream", exc), file=sys.stderr)
+        return 2
+    try:
         import uvloop
 
         uvloop.install()
     except ImportError:  # pragma: no cover - a dependency; plain asyncio works too
         pass
-    return asyncio.run(_main(args, config))
+    return asyncio.run(_main(args, config, stream))
 
 
-async def _main(args: argparse.Namespace, config: object) -> int:
+async def _main(args: argparse.Namespace, config: SessionConfig, stream: StreamConfig) -> int:
     from prometheus_client import CollectorRegistry, start_http_server
 
     from server.frame import Size
     from server.relay_process import RelayProcess
     from server.session.runner import StreamingSession, StreamSettings
-    from server.stack import LocalStack, SessionConfig
+    from server.stack import LocalStack
 
-    assert isinstance(config, SessionConfig)
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, stop.set)
 
-    relay = RelayProcess(args.host, args.port, args.web_root)
+    relay = RelayProcess(stream.host, stream.port, args.web_root)
     stack = LocalStack(config)
     session_task: asyncio.Task[None] | None = None
     code = 0
@@ -138,13 +152,13 @@ async def _main(args: argparse.Namespace, config: object) -> int:
         try:
             endpoint = await loop.run_in_executor(None, relay.start)
         except (RuntimeError, TimeoutError) as exc:
-            print(f"upcast up: relay failed to start on port {args.port}: {exc}", file=sys.stderr)
+            print(f"upcast up: relay failed to start on port {stream.port}: {exc}", file=sys.stderr)
             return 1
         await loop.run_in_executor(None, stack.start)
         await loop.run_in_executor(None, stack.wait_ready)
         assert stack.ring_u is not None
         registry = CollectorRegistry()
-        metrics_port = args.port + 1 if args.metrics_port is None else args.metrics_port
+        metrics_port = stream.session_metrics_port
         if metrics_port:
             try:
                 start_http_server(metrics_port, registry=registry)
@@ -152,10 +166,11 @@ async def _main(args: argparse.Namespace, config: object) -> int:
                 log.warning("session metrics port %d unavailable: %s", metrics_port, exc)
                 metrics_port = 0
         settings = StreamSettings(
-            relay_url=f"http://{_session_host(args.host)}:{endpoint.port}/",
-            broadcast=args.broadcast,
+            relay_url=f"http://{_session_host(stream.host)}:{endpoint.port}/",
+            broadcast=stream.broadcast,
             fps=config.fps,
-            bitrate=None if args.bitrate_kbps is None else args.bitrate_kbps * 1000,
+            bitrate=None if stream.bitrate_kbps is None else stream.bitrate_kbps * 1000,
+            gop_seconds=stream.gop_seconds,
         )
         session = StreamingSession(
             settings,
@@ -173,8 +188,8 @@ async def _main(args: argparse.Namespace, config: object) -> int:
         except TimeoutError:
             print("upcast up: the session could not publish to the relay", file=sys.stderr)
             return 1
-        host = _browser_host(args.host)
-        url = f"http://{host}:{endpoint.port}/?broadcast={args.broadcast}"
+        host = _browser_host(stream.host)
+        url = f"http://{host}:{endpoint.port}/?broadcast={stream.broadcast}"
         extras = f"; session metrics http://{host}:{metrics_port}/metrics" if metrics_port else ""
         print(
             f"upcast is up: watch at {url}  (relay metrics http://{host}:{endpoint.port}/metrics"

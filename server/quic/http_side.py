@@ -123,6 +123,12 @@ class HttpSide:
                     break
         except (ConnectionError, TimeoutError, asyncio.IncompleteReadError):
             pass  # client went away or was too slow: just drop the connection
+        except asyncio.CancelledError:
+            # Server shutdown with a keep-alive connection idle: end quietly. (Python
+            # 3.11's stream protocol logs a traceback for a handler task that ends
+            # cancelled, so this one returns normally instead.)
+            writer.close()
+            return
         except Exception:
             log.exception("HTTP connection failed")
         finally:

@@ -1,0 +1,46 @@
+"""Streaming settings of ``upcast up`` (relay, broadcast, encoder), validated at the edge."""
+
+from __future__ import annotations
+
+import re
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+_BROADCAST = re.compile(r"^[A-Za-z0-9_.-]+(/[A-Za-z0-9_.-]+)*$")
+
+
+class StreamConfig(BaseModel):
+    """What ``upcast up`` streams and where; errors name the field."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    host: str = Field(default="::", description="relay bind address (`::` = all, dual stack)")
+    port: int = Field(default=4443, ge=1, le=65535, description="relay port, UDP (QUIC) and TCP")
+    broadcast: str = Field(default="game", description="broadcast name of the game session")
+    bitrate_kbps: int | None = Field(
+        default=None,
+        ge=100,
+        le=200_000,
+        description="video bitrate (default: 6 Mbit/s at 720p60, scaled)",
+    )
+    gop_seconds: float = Field(default=2.0, gt=0, le=60, description="periodic keyframe interval")
+    metrics_port: int | None = Field(
+        default=None,
+        ge=0,
+        le=65535,
+        description="session Prometheus port (default: port + 1; 0 = off)",
+    )
+
+    @field_validator("broadcast")
+    @classmethod
+    def _broadcast(cls, v: str) -> str:
+        if not _BROADCAST.match(v) or v.endswith("/input") or "/input/" in v:
+            raise ValueError(
+                f"broadcast {v!r} must be path segments of letters, digits, '_', '.', '-'"
+                " joined by '/', and not contain an 'input' segment (viewers publish there)"
+            )
+        return v
+
+    @property
+    def session_metrics_port(self) -> int:
+        return self.port + 1 if self.metrics_port is None else self.metrics_port
