@@ -37,6 +37,8 @@ class FrameRenderer(Protocol):
 
     def set_render_size(self, render_size: Size, scale: float) -> None: ...
 
+    def set_jitter(self, on: bool) -> None: ...
+
 
 @dataclass
 class GameStats:
@@ -67,6 +69,7 @@ class GameLoop:
         # The size the worker upscales to; render size = display / scale.
         self.display_size = display_size
         self._wanted_scale: float | None = None
+        self._wanted_jitter: bool | None = None
         ring.attach_as_producer()
 
     def push_input(self, event: Any, seq: int = 0) -> None:
@@ -80,7 +83,14 @@ class GameLoop:
             return
         self._wanted_scale = scale
 
+    def request_jitter(self, on: bool) -> None:
+        """Turn camera jitter on or off from the next frame on (thread-safe)."""
+        self._wanted_jitter = on
+
     def _apply_scale(self) -> None:
+        jitter, self._wanted_jitter = self._wanted_jitter, None
+        if jitter is not None:
+            self.renderer.set_jitter(jitter)
         scale, self._wanted_scale = self._wanted_scale, None
         if scale is None or self.display_size is None:
             return

@@ -41,6 +41,8 @@ class InputMessage(BaseModel):
     seq: int = Field(default=0, ge=0, lt=1 << 62)
     # Render scale (display / render size) wanted from the next frame on; None: unchanged.
     render_scale: float | None = Field(default=None, ge=1.0, le=4.0, allow_inf_nan=False)
+    # Camera jitter on/off from the next frame on (on only for temporal upscalers).
+    jitter: bool | None = None
 
     def to_event(self) -> CameraInput:
         return CameraInput(self.dyaw_deg, self.dpitch_deg, self.forward, self.right, self.up)
@@ -54,6 +56,7 @@ class InputReceiver:
         path: Path,
         sink: Callable[[CameraInput, int], None],
         on_scale: Callable[[float], None] | None = None,
+        on_jitter: Callable[[bool], None] | None = None,
     ) -> None:
         self.path = path
         self.accepted = 0
@@ -64,6 +67,7 @@ class InputReceiver:
         self._sock.settimeout(0.2)
         self._sink = sink
         self._on_scale = on_scale
+        self._on_jitter = on_jitter
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._loop, name="game-input", daemon=True)
         self._thread.start()
@@ -87,6 +91,8 @@ class InputReceiver:
             self.accepted += 1
             if message.render_scale is not None and self._on_scale is not None:
                 self._on_scale(message.render_scale)
+            if message.jitter is not None and self._on_jitter is not None:
+                self._on_jitter(message.jitter)
             self._sink(message.to_event(), message.seq)
 
     def close(self) -> None:

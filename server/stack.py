@@ -24,6 +24,7 @@ from server.config_types import SizeText, UpscalerName
 from server.frame import Size
 from server.ring import FrameRing
 from server.ring_frames import create_display_ring, create_render_ring
+from upscalers import registry
 
 log = logging.getLogger(__name__)
 
@@ -112,6 +113,7 @@ class LocalStack:
             "game", "--ring", self.ring_r_name, "--scene", c.scene, "--size", c.render_size,
             "--scale", f"{c.scale:.6g}", "--fps", f"{c.fps:g}", "--seed", str(c.seed),
             "--threads", str(c.game_threads), "--input", str(self.input_path),
+            "--jitter" if registry.is_temporal(c.upscaler) else "--no-jitter",
         ]  # fmt: skip
         if self._game_duration_s is not None:
             game_args += ["--duration", f"{self._game_duration_s:g}"]

@@ -68,3 +68,22 @@ def test_scale_change_renders_a_new_size_from_a_reset_frame(ring_name: str) -> N
     # Real-time ring of 3 slots: all three frames are still there, oldest first.
     assert sizes_and_flags == [(SIZE, True), (SIZE, False), (Size(64, 36), True)]
     ring.close()
+
+
+def test_jitter_follows_the_upscaler_kind(ring_name: str) -> None:
+    from upscalers import registry
+
+    assert registry.is_temporal("temporal") and not registry.is_temporal("bilinear")
+    assert not registry.is_temporal("no_such_method")
+    ring = create_render_ring(ring_name, SIZE)
+    loop = GameLoop(Renderer("static", SIZE), ring, fps=60.0)
+    jitters = []
+    for i, jitter_on in enumerate((True, False, True)):
+        loop.request_jitter(jitter_on)
+        assert loop.step(i)
+        lease = ring.acquire_read(1.0)
+        assert lease is not None
+        with lease:
+            jitters.append(render_frame_of(lease).meta.jitter)
+    assert jitters[0] != (0.0, 0.0) and jitters[1] == (0.0, 0.0) and jitters[2] != (0.0, 0.0)
+    ring.close()

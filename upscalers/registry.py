@@ -28,6 +28,15 @@ def available() -> list[str]:
     return sorted(_REGISTRY)
 
 
+def is_temporal(name: str) -> bool:
+    """Whether the method accumulates jittered frames (the game must jitter for it).
+
+    Spatial methods get unjittered frames: jitter without accumulation is only
+    shimmer, and bits the encoder spends on a still scene."""
+    factory = _REGISTRY.get(name)
+    return isinstance(factory, type) and issubclass(factory, Upscaler) and factory.temporal
+
+
 def create(name: str) -> Upscaler:
     """A new upscaler by config name; unknown names list the allowed ones."""
     try:

@@ -21,6 +21,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--duration", type=float, default=None, help="seconds (default: forever)")
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     parser.add_argument("--input", type=Path, default=None, help="Unix socket for player input")
+    parser.add_argument(
+        "--jitter",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="sub-pixel camera jitter (Halton 2,3) for temporal upscalers (default: on)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -36,12 +42,16 @@ def run(args: argparse.Namespace) -> int:
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
-    renderer = Renderer(args.scene, Size.parse(args.size), seed=args.seed, scale=args.scale)
+    renderer = Renderer(
+        args.scene, Size.parse(args.size), seed=args.seed, scale=args.scale, jitter=args.jitter
+    )
     ring = attach_render_ring(args.ring, wait_s=10)
     display = Size.parse(args.size).scaled(args.scale)
     loop = GameLoop(renderer, ring, args.fps, display_size=display)
     receiver = (
-        InputReceiver(args.input, loop.push_input, on_scale=loop.request_scale)
+        InputReceiver(
+            args.input, loop.push_input, on_scale=loop.request_scale, on_jitter=loop.request_jitter
+        )
         if args.input
         else None
     )

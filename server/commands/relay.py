@@ -8,7 +8,12 @@ import contextlib
 import logging
 import signal
 import sys
+import tempfile
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from server.quic.certs import CertBundle
 
 log = logging.getLogger(__name__)
 
@@ -74,9 +79,16 @@ def run(args: argparse.Namespace) -> int:
 
 async def _main(args: argparse.Namespace) -> int:
     from server.quic.certs import generate_cert, load_cert
+
+    with tempfile.TemporaryDirectory(prefix="upcast-cert-") as cert_dir:
+        # A generated key lives only as long as this relay: never left in /tmp.
+        cert = load_cert(args.cert, args.key) if args.cert else generate_cert(directory=cert_dir)
+        return await _serve(args, cert)
+
+
+async def _serve(args: argparse.Namespace, cert: CertBundle) -> int:
     from server.relay import Relay, RelayConfig
 
-    cert = load_cert(args.cert, args.key) if args.cert else generate_cert()
     web_root = args.web_root
     if web_root is None and (DEFAULT_WEB_ROOT / "index.html").is_file():
         web_root = DEFAULT_WEB_ROOT

@@ -7,11 +7,13 @@ P-256 (RSA is refused) and its total validity (notAfter - notBefore) is at most
 
 from __future__ import annotations
 
+import atexit
 import base64
 import datetime
 import hashlib
 import ipaddress
 import os
+import shutil
 import tempfile
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -100,7 +102,12 @@ def generate_cert(
         serialization.PrivateFormat.PKCS8,
         serialization.NoEncryption(),
     )
-    folder = Path(directory) if directory is not None else Path(tempfile.mkdtemp("-upcast-cert"))
+    if directory is None:
+        folder = Path(tempfile.mkdtemp("-upcast-cert"))
+        # A private key in /tmp must not outlive the process that made it.
+        atexit.register(shutil.rmtree, folder, ignore_errors=True)
+    else:
+        folder = Path(directory)
     folder.mkdir(parents=True, exist_ok=True)
     cert_path = folder / "cert.pem"
     key_path = folder / "key.pem"

@@ -128,13 +128,17 @@ class Renderer:
         """Player input, applied from the next rendered frame on."""
         self.game_camera.apply_input(event)
 
+    def set_jitter(self, on: bool) -> None:
+        """Jitter the camera (temporal upscalers) or not (spatial ones), from the next frame."""
+        self.jitter = on
+        self.jitter_phases = jitter_phase_count(self.scale)
+
     def set_render_size(self, render_size: Size, scale: float) -> None:
         """Render at another size from the next frame on (the player changed the scale).
 
         The next frame is a RESET frame: its motion vectors and every upscaler's
         history refer to the old size, so temporal methods must restart."""
-        if self.jitter:
-            self.jitter_phases = jitter_phase_count(scale)
+        self.jitter_phases = jitter_phase_count(scale)
         self.render_size = Size(*render_size)
         self.scale = scale
         self._last_t = None

@@ -129,6 +129,8 @@ class InputRouter:
             return
         if reply.get("ok"):
             log.info("upscaler switched to %s", name)
+            # Jitter only helps a method that accumulates it; otherwise it is shimmer.
+            self._to_game(InputMessage(jitter=registry.is_temporal(name)))
             if self.on_upscaler_set is not None:
                 self.on_upscaler_set(name)
         else:
