@@ -12,6 +12,7 @@ BENCHMARKS: dict[str, str] = {
     "render": "reference renderer speed per scene",
     "framegen": "frame prediction (MPE and baselines): quality against cost per scene",
     "encode": "x264 + CMAF per frame: ms, bytes, PSNR, keyframe cost, mux delay",
+    "latency": "render_end -> client_present per stage, real stack + headless Chromium",
 }
 
 
