@@ -36,7 +36,7 @@ export class Overlay {
 			`${s.status}${s.connected ? ` (${s.version})` : ""}`,
 			`fps ${s.fps}  ${s.width}x${s.height}  ${s.codec ?? "-"}`,
 			`frames recv ${s.framesReceived}  dec ${s.framesDecoded}  shown ${s.framesPresented}  dropped ${s.dropped}`,
-			`groups skipped ${s.groupsSkipped}  frame id ${s.lastPresentedFrameId ?? "-"}  inputs ${s.inputsSent}`,
+			`lost ${s.framesLost}  groups left early ${s.groupsSkipped}  frame id ${s.lastPresentedFrameId ?? "-"}  inputs ${s.inputsSent}`,
 			"",
 			"latency ms        p50     p95",
 		];

@@ -26,7 +26,10 @@ export interface Stats {
 	framesDecoded: number;
 	framesPresented: number;
 	dropped: number;
+	/** Frames published by the server that never arrived (gaps in the timing counter). */
+	framesLost: number;
 	skippedUndecodable: number;
+	/** Groups left when a newer one arrived (frames may all have been read: see framesLost). */
 	groupsSkipped: number;
 	width: number;
 	height: number;
@@ -113,6 +116,7 @@ function main(): void {
 		framesDecoded: decoder.decoded,
 		framesPresented: renderer.presented,
 		dropped: renderer.dropped,
+		framesLost: timing.lost,
 		skippedUndecodable: decoder.skipped,
 		width: renderer.width,
 		height: renderer.height,

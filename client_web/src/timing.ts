@@ -7,6 +7,8 @@ import { SERVER_SPANS, type StageLatency, Window } from "./stats";
 /** The server's JSON per video frame (see /tmp/plan.md "Timing frame JSON"). */
 export interface TimingRecord {
 	frame: number;
+	/** Publish counter: +1 per frame the session published; a gap is a lost frame. */
+	n?: number;
 	pts_us: number;
 	keyframe?: boolean;
 	predicted?: boolean;
@@ -32,12 +34,19 @@ export class TimingJoin {
 	readonly #latency: StageLatency;
 	/** Called once per presented frame whose timing record is known. */
 	onPresented?: (record: TimingRecord, presentUs: number) => void;
+	/** Frames the server published that never reached us (gaps in `n`). */
+	lost = 0;
+	#lastN?: number;
 
 	constructor(latency: StageLatency) {
 		this.#latency = latency;
 	}
 
 	addRecord(record: TimingRecord): void {
+		if (typeof record.n === "number") {
+			if (this.#lastN !== undefined && record.n > this.#lastN + 1) this.lost += record.n - this.#lastN - 1;
+			if (this.#lastN === undefined || record.n > this.#lastN) this.#lastN = record.n;
+		}
 		this.#records.set(record.pts_us, record);
 		trim(this.#records);
 		const client = this.#client.get(record.pts_us);
@@ -87,6 +96,7 @@ export class TimingJoin {
 	reset(): void {
 		this.#records.clear();
 		this.#client.clear();
+		this.#lastN = undefined; // a new subscription starts a new count
 	}
 }
 
