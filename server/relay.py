@@ -29,7 +29,7 @@ from prometheus_client import (
 from prometheus_client.process_collector import ProcessCollector
 
 from server.moq.limits import MoqLimits
-from server.moq.relay_core import ConnId, RelayCore
+from server.moq.relay_core import ConnId, ConnStats, RelayCore
 from server.moq_link import MoqLink
 from server.quic.certs import CertBundle
 from server.quic.endpoints import Endpoints, serve
@@ -97,7 +97,11 @@ class Relay:
         self._ids = itertools.count(1)
         self._endpoints: Endpoints | None = None
         self._tasks: list[asyncio.Task[None]] = []
-        self._last_totals = (0, 0, 0, 0)
+        # Per session: its live ConnStats (the core mutates it; it outlives the core's
+        # record, so a session's last frames still count after the core dropped it) and
+        # the totals already added to the Prometheus counters.
+        self._conn_stats: dict[int, ConnStats] = {}
+        self._counted: dict[int, tuple[int, int, int, int]] = {}
         self.started = time.monotonic()
 
     @property
@@ -150,6 +154,9 @@ class Relay:
         self.metrics.connections.set(len(self.links))
         log.info("relay: session %d from %s (%s)", conn_id, link.remote, request.path)
         self._flush(self.core.add_connection(conn_id, link.moq))
+        stats = self.core.stats(conn_id)
+        if stats is not None:
+            self._conn_stats[conn_id] = stats
         return link
 
     def _closed(self, conn_id: int, reason: str) -> None:
@@ -160,6 +167,9 @@ class Relay:
         log.info("relay: session %d from %s closed (%s); %s", conn_id, link.remote, reason, stats)
         self.metrics.connections.set(len(self.links))
         self._flush(self.core.remove_connection(conn_id))
+        self._count(conn_id)  # its last frames since the previous update
+        self._conn_stats.pop(conn_id, None)
+        self._counted.pop(conn_id, None)
 
     def _handle(self, conn_id: int) -> None:
         t0 = time.perf_counter()
@@ -196,27 +206,26 @@ class Relay:
             await asyncio.sleep(STATS_INTERVAL_S)
             self._update_counters()
 
-    def _update_counters(self) -> None:
-        frames_in = frames_out = bytes_out = skipped = 0
-        for conn_id in self.links:
-            s = self.core.stats(conn_id)
-            if s is not None:
-                frames_in += s.frames_in
-                frames_out += s.frames_out
-                bytes_out += s.bytes_out
-                skipped += s.groups_skipped
-        # Counters only grow: closed sessions' totals stay counted.
-        last = self._last_totals
+    def _count(self, conn_id: int) -> None:
+        """Add what one session did since it was last counted (counters only grow; a
+        global sum over open sessions would lose the others' progress whenever one
+        closes)."""
+        s = self._conn_stats.get(conn_id)
+        if s is None:
+            return
+        now = (s.frames_in, s.frames_out, s.bytes_out, s.groups_skipped)
+        before = self._counted.get(conn_id, (0, 0, 0, 0))
         m = self.metrics
-        for counter, now, before in (
-            (m.frames_in, frames_in, last[0]),
-            (m.frames_out, frames_out, last[1]),
-            (m.bytes_out, bytes_out, last[2]),
-            (m.skipped, skipped, last[3]),
-        ):
-            if now > before:
-                counter.inc(now - before)
-        self._last_totals = (frames_in, frames_out, bytes_out, skipped)
+        counters = (m.frames_in, m.frames_out, m.bytes_out, m.skipped)
+        for counter, value, counted in zip(counters, now, before, strict=True):
+            if value > counted:
+                counter.inc(value - counted)
+        self._counted[conn_id] = now
+
+    def _update_counters(self) -> None:
+        for conn_id in list(self._conn_stats):
+            self._count(conn_id)
+        m = self.metrics
         for (broadcast, track), count in self._viewer_counts().items():
             m.viewers.labels(broadcast, track).set(count)
 

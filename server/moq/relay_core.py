@@ -11,10 +11,13 @@ Choices (and why):
   last viewer leaves, so a publisher only sends what someone watches.
 - The latest group's frames are cached (bounded by `max_group_cache_bytes`) so a new viewer
   starts at once from that group's first frame (a keyframe), then continues live.
-- A viewer whose group stream backlog passes `max_backlog_bytes`, or whose oldest unsent
-  frame is older than its max latency, gets that group reset (ErrorCode.SKIPPED) and joins
-  the next group at its start: frames inside a group depend on its keyframe, so a group is
-  the smallest unit that can be skipped. Nothing is buffered without bound.
+- A viewer whose backlog passes `max_backlog_bytes`, or whose oldest unsent frame is older
+  than its max latency, gets its current group reset (ErrorCode.SKIPPED) and joins the next
+  group at its start: frames inside a group depend on its keyframe, so a group is the
+  smallest unit that can be skipped. The backlog counts the current group's stream plus the
+  finished groups of that subscription not yet sent ("tails"): a viewer that never reads
+  would otherwise take a whole finished group per group, each under the limit, without
+  bound. Nothing is buffered without bound.
 - Publisher leaves: its broadcasts are announced inactive and viewer subscriptions are
   ended (FIN). Viewers re-subscribe when the broadcast is announced again. We do not keep
   viewers attached across publishers: a new publisher restarts group sequences, and an
@@ -98,6 +101,8 @@ class _Viewer:
     max_latency_s: float | None
     accepted: bool = False
     outs: dict[int, _Out] = field(default_factory=dict)  # upstream group stream -> out
+    tails: set[int] = field(default_factory=set)  # finished group streams still unsent
+    start: int | None = None  # sequence of the first group it was given
 
 
 @dataclass(slots=True)
@@ -224,6 +229,7 @@ class RelayCore:
         elif isinstance(event, GroupCancelled):
             viewer = self._find_viewer(conn_id, event.request_id)
             if viewer is not None:
+                viewer.tails.discard(event.stream_id)
                 for upstream, out in list(viewer.outs.items()):
                     if out.stream_id == event.stream_id:
                         del viewer.outs[upstream]
@@ -326,7 +332,7 @@ class RelayCore:
         for payload in group.frames:
             self._write(viewer, out, payload)
         if group.done:
-            session.finish_group(out.stream_id)
+            self._finish_out(viewer, out)
             del viewer.outs[track.latest]
 
     def _remove_viewer(self, track: _Track, key: ViewerKey) -> None:
@@ -372,7 +378,13 @@ class RelayCore:
         track.groups[e.stream_id] = group
         latest = None if track.latest is None else track.groups.get(track.latest)
         if latest is not None and latest.sequence > e.sequence:
-            group.cacheable = False  # a late, older group: nobody new starts there
+            # A late, older group (its first packet was lost and came back after a newer
+            # group's): nobody new starts there, but viewers that were already following
+            # get it, as any group: QUIC does not order streams, so this is routine.
+            group.cacheable = False
+            for viewer in list(track.viewers.values()):
+                if viewer.accepted and viewer.start is not None and viewer.start <= e.sequence:
+                    self._open_out(track, viewer, e.stream_id, group)
             return
         if latest is not None and track.latest is not None and latest.done:
             del track.groups[track.latest]
@@ -423,10 +435,10 @@ class RelayCore:
             out = viewer.outs.pop(e.stream_id, None)
             if out is None:
                 continue
-            session = self._conns[viewer.conn].session
             if e.complete:
-                session.finish_group(out.stream_id)
+                self._finish_out(viewer, out)
             else:
+                session = self._conns[viewer.conn].session
                 session.abort_group(out.stream_id, e.error_code or ErrorCode.CANCEL)
             self._touched.add(viewer.conn)
         if track.latest != e.stream_id:
@@ -442,6 +454,8 @@ class RelayCore:
             return None
         out = _Out(stream_id)
         viewer.outs[upstream] = out
+        if viewer.start is None:
+            viewer.start = group.sequence
         return out
 
     def _write(self, viewer: _Viewer, out: _Out, payload: bytes) -> None:
@@ -453,9 +467,25 @@ class RelayCore:
             conn.stats.bytes_out += len(payload)
             self._touched.add(viewer.conn)
 
+    def _finish_out(self, viewer: _Viewer, out: _Out) -> None:
+        """FIN a viewer's group stream; until its bytes are sent they count as backlog."""
+        self._conns[viewer.conn].session.finish_group(out.stream_id)
+        if self._buffered_bytes(viewer.conn, out.stream_id) > 0:
+            viewer.tails.add(out.stream_id)
+
+    def _tail_backlog(self, viewer: _Viewer) -> int:
+        total = 0
+        for stream_id in list(viewer.tails):
+            backlog = self._buffered_bytes(viewer.conn, stream_id)
+            if backlog > 0:
+                total += backlog
+            else:
+                viewer.tails.discard(stream_id)  # drained (or reset by the peer)
+        return total
+
     def _lagging(self, viewer: _Viewer, out: _Out, now: float) -> bool:
         backlog = self._buffered_bytes(viewer.conn, out.stream_id)
-        if backlog > self.max_backlog_bytes:
+        if backlog + self._tail_backlog(viewer) > self.max_backlog_bytes:
             return True
         # Frames entirely below (written - backlog) have left our queue; forget their marks.
         sent = out.written - backlog

@@ -142,6 +142,7 @@ class WtSession:
             self.conn.quic.reset_stream(stream_id, codes.to_http_code(code))
         except ValueError:
             return  # peer's unidirectional stream or discarded: nothing to reset
+        self._drop_send_buffer(stream_id)
         self.conn.schedule_transmit()
 
     def stop_sending(self, stream_id: int, code: int) -> None:
@@ -187,6 +188,17 @@ class WtSession:
         if sender._reset_error_code is not None:
             return 0
         return sender._buffer_stop - sender._buffer_start
+
+    def _drop_send_buffer(self, stream_id: int) -> None:
+        """Free the unsent/unacked bytes of a stream we reset.
+
+        aioquic never sends or resends them after a reset but keeps them until the peer
+        acknowledges the RESET_STREAM: a viewer that stopped reading would pin every group
+        the relay skipped for it until the idle timeout. Private field, as above.
+        """
+        stream = self.conn.quic._streams.get(stream_id)
+        if stream is not None and stream.sender._reset_error_code is not None:
+            stream.sender._buffer = bytearray()
 
     def total_buffered(self) -> int:
         """Sum of buffered_bytes over this session's streams (O(streams known))."""
