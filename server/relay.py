@@ -48,6 +48,9 @@ class RelayConfig:
     port: int = 4443
     web_root: Path | None = None
     max_backlog_bytes: int = 2 * 1024 * 1024
+    # A viewer that asked for no max_latency still skips ahead past this lag: a
+    # cloud-gaming picture half a second old is worth less than the next keyframe.
+    default_max_latency_ms: int = 500
     max_connections: int = 1000
     limits: MoqLimits = field(default_factory=MoqLimits)
 
@@ -92,7 +95,11 @@ class Relay:
         self.registry = CollectorRegistry()
         ProcessCollector(registry=self.registry)  # process_cpu_seconds_total for the load test
         self.metrics = RelayMetrics(self.registry)
-        self.core = RelayCore(self._buffered, max_backlog_bytes=config.max_backlog_bytes)
+        self.core = RelayCore(
+            self._buffered,
+            max_backlog_bytes=config.max_backlog_bytes,
+            default_max_latency_s=config.default_max_latency_ms / 1000 or None,
+        )
         self.links: dict[int, MoqLink] = {}
         self._ids = itertools.count(1)
         self._endpoints: Endpoints | None = None

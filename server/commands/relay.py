@@ -41,6 +41,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=2048,
         help="bytes queued for one viewer before it skips to the newest group (KiB)",
     )
+    parser.add_argument(
+        "--max-latency-ms",
+        type=int,
+        default=500,
+        help="lag after which a viewer that set no max_latency skips to the newest group"
+        " (0 = only the backlog limit)",
+    )
     parser.add_argument("--max-sessions", type=int, default=1000, help="sessions at once")
     parser.add_argument("--duration", type=float, default=None, help="stop after SECONDS")
     parser.add_argument("--ready-file", type=Path, default=None, help=argparse.SUPPRESS)
@@ -53,6 +60,8 @@ def _problem(args: argparse.Namespace) -> str | None:
         return "--cert and --key go together"
     if args.max_backlog_kib < 16:
         return f"--max-backlog-kib must be at least 16, got {args.max_backlog_kib}"
+    if args.max_latency_ms < 0:
+        return f"--max-latency-ms must be >= 0, got {args.max_latency_ms}"
     if args.max_sessions < 1:
         return f"--max-sessions must be positive, got {args.max_sessions}"
     if args.web_root is not None and not (args.web_root / "index.html").is_file():
@@ -97,6 +106,7 @@ async def _serve(args: argparse.Namespace, cert: CertBundle) -> int:
         port=args.port,
         web_root=web_root,
         max_backlog_bytes=args.max_backlog_kib * 1024,
+        default_max_latency_ms=args.max_latency_ms,
         max_connections=args.max_sessions,
     )
     relay = Relay(config, cert)
