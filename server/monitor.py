@@ -16,9 +16,11 @@ from __future__ import annotations
 
 import logging
 import time
+import weakref
 from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 import numpy.typing as npt
@@ -76,9 +78,23 @@ class MonitorSnapshot:
 
 
 class MonitorMetrics:
-    """The Prometheus side of one monitor, in its own registry (or a shared one)."""
+    """The Prometheus metrics of every monitor of one registry, labelled by component.
 
-    def __init__(self, component: str, registry: CollectorRegistry) -> None:
+    One instance per registry (``for_registry``): a registry refuses a metric name
+    twice, and a relay adds a monitor per broadcast."""
+
+    _by_registry: ClassVar[weakref.WeakKeyDictionary[CollectorRegistry, MonitorMetrics]] = (
+        weakref.WeakKeyDictionary()
+    )
+
+    @classmethod
+    def for_registry(cls, registry: CollectorRegistry) -> MonitorMetrics:
+        found = cls._by_registry.get(registry)
+        if found is None:
+            found = cls._by_registry[registry] = cls(registry)
+        return found
+
+    def __init__(self, registry: CollectorRegistry) -> None:
         labels = ["component"]
         self.fps = Gauge("upcast_fps", "Rolling frames per second", labels, registry=registry)
         self.jitter = Gauge(
@@ -102,7 +118,6 @@ class MonitorMetrics:
             buckets=LATENCY_BUCKETS,
             registry=registry,
         )
-        self.component = component
 
 
 class FrameRateMonitor:
@@ -111,26 +126,29 @@ class FrameRateMonitor:
     def __init__(
         self,
         component: str,
-        target_fps: float,
+        target_fps: float | None,
         *,
         registry: CollectorRegistry | None = None,
         budgets_ms: Mapping[str, float] | None = None,
         window_s: float = WINDOW_S,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
-        if target_fps <= 0:
+        if target_fps is not None and target_fps <= 0:
             raise ValueError(f"target_fps must be positive, got {target_fps}")
         self.component = component
+        # None: the rate is whatever the source sends (the relay does not know it).
         self.target_fps = target_fps
         self.window_s = window_s
-        self.budgets_ms = dict(budgets_ms or default_budgets_ms(target_fps))
+        if budgets_ms is None:
+            budgets_ms = default_budgets_ms(target_fps) if target_fps is not None else {}
+        self.budgets_ms = dict(budgets_ms)
         self._clock = clock
         self._arrivals: deque[float] = deque()
         self._stages: dict[str, deque[tuple[float, float]]] = {}
         self._last_warn: dict[str, float] = {}
         self.frames = 0
         self.dropped = 0
-        self.metrics = MonitorMetrics(component, registry) if registry is not None else None
+        self.metrics = MonitorMetrics.for_registry(registry) if registry is not None else None
 
     def frame(self, stamps: npt.NDArray[np.int64] | None = None, *, dropped: int = 0) -> None:
         """Record one frame (its timing record, if any) and frames lost before it."""
@@ -140,9 +158,9 @@ class FrameRateMonitor:
         self._arrivals.append(now)
         m = self.metrics
         if m is not None:
-            m.frames.labels(m.component).inc()
+            m.frames.labels(self.component).inc()
             if dropped:
-                m.dropped.labels(m.component).inc(dropped)
+                m.dropped.labels(self.component).inc(dropped)
         if stamps is not None:
             for name, start, end in STAGE_SPANS:
                 ms = span_ms(stamps, start, end)
@@ -156,7 +174,7 @@ class FrameRateMonitor:
         now = self._clock() if now is None else now
         self._stages.setdefault(name, deque()).append((now, ms))
         if self.metrics is not None:
-            self.metrics.stage.labels(self.metrics.component, name).observe(ms / 1000.0)
+            self.metrics.stage.labels(self.component, name).observe(ms / 1000.0)
 
     def _trim(self, now: float) -> None:
         horizon = now - self.window_s
@@ -195,13 +213,14 @@ class FrameRateMonitor:
         now = self._clock()
         missed: list[str] = []
         # A full window below 90 % of the target rate is a missed frame budget too.
-        if len(self._arrivals) >= 2 and 0 < snap.fps < 0.9 * self.target_fps:
+        target = self.target_fps
+        if target is not None and len(self._arrivals) >= 2 and 0 < snap.fps < 0.9 * target:
             missed.append("fps")
             if now - self._last_warn.get("fps", -WARN_EVERY_S) >= WARN_EVERY_S:
                 self._last_warn["fps"] = now
                 log.warning(
                     "%s: %.1f fps is below 90%% of the %.0f fps target (jitter %.1f ms)",
-                    self.component, snap.fps, self.target_fps, snap.jitter_ms,
+                    self.component, snap.fps, target, snap.jitter_ms,
                 )  # fmt: skip
         for name, budget in self.budgets_ms.items():
             figures = snap.stages.get(name)

@@ -28,6 +28,7 @@ from prometheus_client import (
 )
 from prometheus_client.process_collector import ProcessCollector
 
+from server.monitor import FrameRateMonitor
 from server.moq.limits import MoqLimits
 from server.moq.relay_core import ConnId, ConnStats, RelayCore
 from server.moq_link import MoqLink
@@ -39,6 +40,8 @@ from server.quic.session import WtRequest, WtSession
 log = logging.getLogger(__name__)
 
 POLL_INTERVAL_S = 0.05
+MAX_MONITORED_BROADCASTS = 256
+RELAY_STAGE_BUDGET_MS = 5.0  # receive one frame -> written to every viewer's stream
 STATS_INTERVAL_S = 1.0
 
 
@@ -99,7 +102,11 @@ class Relay:
             self._buffered,
             max_backlog_bytes=config.max_backlog_bytes,
             default_max_latency_s=config.default_max_latency_ms / 1000 or None,
+            on_frame=self._on_frame,
         )
+        # One monitor per broadcast's video track: its fps and jitter as the relay
+        # receives it, and the time to fan each frame out ("relay" stage).
+        self.monitors: dict[str, FrameRateMonitor] = {}
         self.links: dict[int, MoqLink] = {}
         self._ids = itertools.count(1)
         self._endpoints: Endpoints | None = None
@@ -198,6 +205,23 @@ class Relay:
         link = self.links.get(conn_id)  # type: ignore[call-overload]
         return 0 if link is None else link.wt.buffered_bytes(stream_id)
 
+    def _on_frame(self, track: tuple[str, str], size: int, fanout_s: float) -> None:
+        broadcast, name = track
+        if name != "video":
+            return
+        monitor = self.monitors.get(broadcast)
+        if monitor is None:
+            if len(self.monitors) >= MAX_MONITORED_BROADCASTS:
+                return
+            monitor = self.monitors[broadcast] = FrameRateMonitor(
+                f"relay/{broadcast}",
+                None,
+                registry=self.registry,
+                budgets_ms={"relay": RELAY_STAGE_BUDGET_MS},
+            )
+        monitor.frame()
+        monitor.record_stage("relay", fanout_s * 1000.0)
+
     # -- timers -------------------------------------------------------------------
 
     async def _poll_loop(self) -> None:
@@ -212,6 +236,10 @@ class Relay:
         while True:
             await asyncio.sleep(STATS_INTERVAL_S)
             self._update_counters()
+            for broadcast, monitor in list(self.monitors.items()):
+                monitor.check_budgets()
+                if broadcast not in self.core.broadcasts:
+                    del self.monitors[broadcast]  # gone: stop reporting it
 
     def _count(self, conn_id: int) -> None:
         """Add what one session did since it was last counted (counters only grow; a
@@ -248,6 +276,7 @@ class Relay:
             "uptime_s": round(time.monotonic() - self.started, 1),
             "sessions": len(self.links),
             "broadcasts": sorted(self.core.broadcasts),
+            "monitor": {b: m.snapshot().as_dict() for b, m in self.monitors.items()},
             "viewers": {f"{b}/{t}": n for (b, t), n in self._viewer_counts().items()},
             "per_session": {
                 str(cid): asdict(s) if (s := self.core.stats(cid)) is not None else None

@@ -85,3 +85,17 @@ def test_stage_percentiles_and_budget_warning(caplog: pytest.LogCaptureFixture) 
 def test_bad_target_is_refused() -> None:
     with pytest.raises(ValueError, match="target_fps"):
         FrameRateMonitor("x", 0.0)
+
+
+def test_monitors_share_one_registry_by_component() -> None:
+    registry = CollectorRegistry()
+    a = FrameRateMonitor("relay/a", None, registry=registry)
+    b = FrameRateMonitor("relay/b", None, registry=registry, budgets_ms={"relay": 1.0})
+    again = FrameRateMonitor("relay/a", None, registry=registry)  # a broadcast came back
+    for mon in (a, b, again):
+        mon.frame()
+    b.record_stage("relay", 3.0)
+    assert b.check_budgets() == ["relay"] and a.check_budgets() == []
+    text = generate_latest(registry).decode()
+    assert 'upcast_frames_total{component="relay/a"} 2.0' in text
+    assert 'upcast_frames_total{component="relay/b"} 1.0' in text

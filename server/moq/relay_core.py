@@ -125,8 +125,12 @@ class RelayCore:
         max_backlog_bytes: int = 2 * 1024 * 1024,
         default_max_latency_s: float | None = None,
         max_group_cache_bytes: int = 32 * 1024 * 1024,
+        on_frame: Callable[[TrackKey, int, float], None] | None = None,
     ) -> None:
+        """``on_frame(track, payload bytes, seconds spent fanning it out)`` is called for
+        every frame a publisher delivers: the relay's monitor and metrics."""
         self._buffered_bytes = buffered_bytes
+        self._on_frame_hook = on_frame
         self._clock = clock
         self.max_backlog_bytes = max_backlog_bytes
         self.default_max_latency_s = default_max_latency_s
@@ -423,6 +427,8 @@ class RelayCore:
                 self._skip(viewer, e.stream_id)
             else:
                 self._write(viewer, out, e.payload)
+        if self._on_frame_hook is not None:
+            self._on_frame_hook(track.key, len(e.payload), self._clock() - now)
 
     def _on_group_closed(self, conn: _Conn, e: GroupClosed) -> None:
         track = self._upstream_track(conn, e.subscription_id)
