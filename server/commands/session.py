@@ -1,0 +1,116 @@
+"""``upcast session``: stream an existing game session's ring U to a relay.
+
+``upcast up`` runs this in its own process next to the game and worker it
+starts; on its own it attaches to rings made by someone else (an engine that
+produces into ring U, a session manager) and publishes to any moq-lite relay.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+import signal
+import sys
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--ring", required=True, help="ring U name (display frames) to stream")
+    parser.add_argument(
+        "--relay", required=True, help="relay URL, e.g. http://localhost:4443/ (hash fetched)"
+    )
+    parser.add_argument("--cert-sha256", default=None, help="pin this certificate hash instead")
+    parser.add_argument("--broadcast", default="game", help="broadcast name (default: game)")
+    parser.add_argument("--fps", type=float, default=60.0, help="stream frame rate")
+    parser.add_argument("--bitrate-kbps", type=int, default=None, help="video bitrate")
+    parser.add_argument("--gop-seconds", type=float, default=2.0, help="keyframe interval")
+    parser.add_argument("--game-input", type=Path, default=None, help="game input socket")
+    parser.add_argument("--worker-control", type=Path, default=None, help="worker control socket")
+    parser.add_argument("--metrics-port", type=int, default=0, help="Prometheus port (0 = off)")
+    parser.add_argument("--duration", type=float, default=None, help="stop after SECONDS")
+    parser.add_argument(
+        "--attach-timeout", type=float, default=10.0, help="seconds to wait for the ring"
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    from pydantic import ValidationError
+
+    from server.config_errors import format_validation_error
+    from server.stream_config import StreamConfig
+
+    try:
+        # Same field rules as upcast up (broadcast name, bitrate, gop, metrics port).
+        StreamConfig(
+            broadcast=args.broadcast,
+            bitrate_kbps=args.bitrate_kbps,
+            gop_seconds=args.gop_seconds,
+            metrics_port=args.metrics_port,
+        )
+    except ValidationError as exc:
+        print(format_validation_error("session", exc), file=sys.stderr)
+        return 2
+    if not 0 < args.fps <= 240:
+        print(f"upcast session: --fps must be in (0, 240], got {args.fps}", file=sys.stderr)
+        return 2
+    if not args.relay.startswith(("http://", "https://")):
+        print(
+            f"upcast session: --relay must be an http(s):// URL, got {args.relay}", file=sys.stderr
+        )
+        return 2
+    try:
+        import uvloop
+
+        uvloop.install()
+    except ImportError:  # pragma: no cover - a dependency; plain asyncio works too
+        pass
+    return asyncio.run(_main(args))
+
+
+async def _main(args: argparse.Namespace) -> int:
+    from prometheus_client import CollectorRegistry, start_http_server
+
+    from server.frame import Size
+    from server.ring import RingError
+    from server.ring_frames import attach_display_ring
+    from server.session.runner import StreamingSession, StreamSettings
+
+    try:
+        ring = attach_display_ring(args.ring, wait_s=args.attach_timeout)
+    except (RingError, FileNotFoundError, TimeoutError) as exc:
+        print(f"upcast session: cannot attach ring U {args.ring!r}: {exc}", file=sys.stderr)
+        return 1
+    display = Size(ring.max_width, ring.max_height)
+    registry = CollectorRegistry()
+    if args.metrics_port:
+        start_http_server(args.metrics_port, registry=registry)
+    session = StreamingSession(
+        StreamSettings(
+            relay_url=args.relay,
+            broadcast=args.broadcast,
+            fps=args.fps,
+            bitrate=None if args.bitrate_kbps is None else args.bitrate_kbps * 1000,
+            gop_seconds=args.gop_seconds,
+            cert_hash_hex=args.cert_sha256,
+        ),
+        ring,
+        display,
+        game_input=args.game_input,
+        worker_control=args.worker_control,
+        registry=registry,
+    )
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    if args.duration is not None:
+        loop.call_later(args.duration, stop.set)
+    log.info("streaming ring %s (%s) to %s as %r", args.ring, display, args.relay, args.broadcast)
+    try:
+        await session.run(stop)
+    finally:
+        ring.close()
+    return 0
