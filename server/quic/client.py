@@ -28,6 +28,7 @@ from . import codes, sf
 from .certs import der_sha256_hex
 from .connection import WtConnection, decode_headers
 from .http_fetch import fetch_cert_hash
+from .server import grow_buffers
 from .session import HandlerFactory, WtRequest, WtSession
 
 DEFAULT_PROTOCOLS = ("moq-lite-03",)
@@ -102,6 +103,7 @@ async def _open(host: str, port: int, config: QuicConfiguration) -> WtClientConn
     sock = socket.socket(socket.AF_INET6, socket.SOCK_DGRAM)
     try:
         sock.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_V6ONLY, 0)
+        grow_buffers(sock)  # a publisher's burst or a viewer's stall must not drop datagrams
         sock.bind(("::", 0, 0, 0))
     except OSError:
         sock.close()

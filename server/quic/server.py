@@ -134,7 +134,7 @@ class WtServer:
 UDP_BUFFER_BYTES = 4 * 1024 * 1024
 
 
-def _grow_buffers(sock: socket.socket) -> None:
+def grow_buffers(sock: socket.socket) -> None:
     """Ask for 4 MiB socket buffers: one event-loop stall at 200 Mbit/s of fan-out
     otherwise overflows the default ~200 KiB receive buffer, and every datagram the
     kernel drops costs a QUIC loss recovery (the kernel caps it at net.core.*mem_max)."""
@@ -149,7 +149,7 @@ def bind_udp(host: str, port: int) -> socket.socket:
     if ":" in host or host == "":
         sock = socket.socket(socket.AF_INET6, socket.SOCK_DGRAM)
         sock.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_V6ONLY, 0)
-        _grow_buffers(sock)
+        grow_buffers(sock)
         try:
             sock.bind((host or "::", port, 0, 0))
         except OSError:
@@ -157,7 +157,7 @@ def bind_udp(host: str, port: int) -> socket.socket:
             raise
     else:
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        _grow_buffers(sock)
+        grow_buffers(sock)
         try:
             sock.bind((host, port))
         except OSError:

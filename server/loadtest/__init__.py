@@ -1,0 +1,1 @@
+"""``upcast loadtest``: many moq-lite viewers against a relay, measured."""
