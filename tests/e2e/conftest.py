@@ -123,7 +123,9 @@ def start_live(scene: str, *, fps: float = FPS) -> Iterator[Live]:
         stack.check()
 
 
-@pytest.fixture(scope="session")
+# Module scope, not session: Playwright's sync API keeps an event loop running in
+# the main thread while it is open, and later modules call asyncio.run().
+@pytest.fixture(scope="module")
 def browser() -> Iterator[Any]:
     sync_api = pytest.importorskip("playwright.sync_api")
     with sync_api.sync_playwright() as pw:
