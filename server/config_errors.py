@@ -2,7 +2,12 @@
 
 from __future__ import annotations
 
-from pydantic import ValidationError
+import sys
+from typing import Any, TypeVar
+
+from pydantic import BaseModel, ValidationError
+
+Model = TypeVar("Model", bound=BaseModel)
 
 
 def format_validation_error(what: str, exc: ValidationError) -> str:
@@ -11,3 +16,13 @@ def format_validation_error(what: str, exc: ValidationError) -> str:
         field = ".".join(str(p) for p in err["loc"]) or "(root)"
         lines.append(f"  {field}: {err['msg']}")
     return "\n".join(lines)
+
+
+def validated(model: type[Model], what: str, **fields: Any) -> Model | None:
+    """``model(**fields)``, or None after printing which field is wrong to stderr
+    (the commands then exit with status 2)."""
+    try:
+        return model(**fields)
+    except ValidationError as exc:
+        print(format_validation_error(what, exc), file=sys.stderr)
+        return None

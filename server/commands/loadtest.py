@@ -9,12 +9,12 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import contextlib
 import subprocess
 import sys
 from pathlib import Path
 from typing import Any
 
+from server.event_loop import install_uvloop
 from server.loadtest.plan import MAX_DURATION_S, MAX_VIEWERS, LoadConfig
 
 SYNTHETIC_SLACK_S = 120.0  # the synthetic publisher outlives the run by at most this
@@ -134,10 +134,7 @@ def run(args: argparse.Namespace) -> int:
     if problem is not None:
         print(f"upcast loadtest: {problem}", file=sys.stderr)
         return 2
-    with contextlib.suppress(ImportError):
-        import uvloop
-
-        uvloop.install()
+    install_uvloop()
     publisher: subprocess.Popen[bytes] | None = None
     if args.synthetic_publisher:
         bound = min(_run_bound_s(config, args.find_max), 4 * 3600.0)

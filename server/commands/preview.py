@@ -67,22 +67,11 @@ def _bind_message(host: str, port: int, exc: OSError) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pydantic import ValidationError
-
-    from server.config_errors import format_validation_error
     from server.preview import PreviewServer
-    from server.stack import LocalStack, SessionConfig
+    from server.stack import LocalStack, session_config_from
 
-    try:
-        config = SessionConfig(
-            scene=args.scene,
-            render_size=args.render_size,
-            display_size=args.display_size,
-            fps=args.fps,
-            upscaler=args.upscaler,
-        )
-    except ValidationError as exc:
-        print(format_validation_error("session", exc), file=sys.stderr)
+    config = session_config_from(args)
+    if config is None:
         return 2
     if not 0 <= args.port <= 65535:
         print(f"upcast preview: --port must be 0..65535, got {args.port}", file=sys.stderr)

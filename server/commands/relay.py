@@ -77,12 +77,9 @@ def run(args: argparse.Namespace) -> int:
     if problem is not None:
         print(f"upcast relay: {problem}", file=sys.stderr)
         return 2
-    try:
-        import uvloop
+    from server.event_loop import install_uvloop
 
-        uvloop.install()
-    except ImportError:  # pragma: no cover - uvloop is a dependency; plain asyncio works too
-        pass
+    install_uvloop()
     return asyncio.run(_main(args))
 
 

@@ -37,21 +37,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pydantic import ValidationError
-
-    from server.config_errors import format_validation_error
+    from server.config_errors import validated
     from server.stream_config import StreamConfig
 
-    try:
-        # Same field rules as upcast up (broadcast name, bitrate, gop, metrics port).
-        StreamConfig(
-            broadcast=args.broadcast,
-            bitrate_kbps=args.bitrate_kbps,
-            gop_seconds=args.gop_seconds,
-            metrics_port=args.metrics_port,
-        )
-    except ValidationError as exc:
-        print(format_validation_error("session", exc), file=sys.stderr)
+    # Same field rules as upcast up (broadcast name, bitrate, gop, metrics port).
+    stream = validated(
+        StreamConfig,
+        "session",
+        broadcast=args.broadcast,
+        bitrate_kbps=args.bitrate_kbps,
+        gop_seconds=args.gop_seconds,
+        metrics_port=args.metrics_port,
+    )
+    if stream is None:
         return 2
     if not 0 < args.fps <= 240:
         print(f"upcast session: --fps must be in (0, 240], got {args.fps}", file=sys.stderr)
@@ -61,12 +59,9 @@ def run(args: argparse.Namespace) -> int:
             f"upcast session: --relay must be an http(s):// URL, got {args.relay}", file=sys.stderr
         )
         return 2
-    try:
-        import uvloop
+    from server.event_loop import install_uvloop
 
-        uvloop.install()
-    except ImportError:  # pragma: no cover - a dependency; plain asyncio works too
-        pass
+    install_uvloop()
     return asyncio.run(_main(args))
 
 

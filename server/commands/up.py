@@ -89,45 +89,29 @@ def _session_host(bind: str) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pydantic import ValidationError
-
-    from server.config_errors import format_validation_error
-    from server.stack import SessionConfig
+    from server.config_errors import validated
+    from server.event_loop import install_uvloop
+    from server.stack import session_config_from
     from server.stream_config import StreamConfig
 
     problem = _problem(args)
     if problem is not None:
         print(f"upcast up: {problem}", file=sys.stderr)
         return 2
-    try:
-        config = SessionConfig(
-            scene=args.scene,
-            render_size=args.render_size,
-            display_size=args.display_size,
-            fps=args.fps,
-            upscaler=args.upscaler,
-        )
-    except ValidationError as exc:
-        print(format_validation_error("session", exc), file=sys.stderr)
+    config = session_config_from(args)
+    stream = validated(
+        StreamConfig,
+        "stream",
+        host=args.host,
+        port=args.port,
+        broadcast=args.broadcast,
+        bitrate_kbps=args.bitrate_kbps,
+        gop_seconds=args.gop_seconds,
+        metrics_port=args.metrics_port,
+    )
+    if config is None or stream is None:
         return 2
-    try:
-        stream = StreamConfig(
-            host=args.host,
-            port=args.port,
-            broadcast=args.broadcast,
-            bitrate_kbps=args.bitrate_kbps,
-            gop_seconds=args.gop_seconds,
-            metrics_port=args.metrics_port,
-        )
-    except ValidationError as exc:
-        print(format_validation_error("stream", exc), file=sys.stderr)
-        return 2
-    try:
-        import uvloop
-
-        uvloop.install()
-    except ImportError:  # pragma: no cover - a dependency; plain asyncio works too
-        pass
+    install_uvloop()
     return asyncio.run(_main(args, config, stream))
 
 

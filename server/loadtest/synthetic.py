@@ -37,6 +37,7 @@ import numpy.typing as npt
 from server.catalog import catalog_for
 from server.cmaf import media_fragment, parse_fragment
 from server.encode import EncodedFrame, EncoderConfig, VideoEncoder
+from server.event_loop import install_uvloop
 from server.frame import Camera, FrameMeta, Size
 from server.moq.events import Event
 from server.moq_link import MoqLink, connect_moq
@@ -333,10 +334,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"synthetic publisher: {exc}", file=sys.stderr)
         return 2
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    with contextlib.suppress(ImportError):
-        import uvloop
-
-        uvloop.install()
+    install_uvloop()
     return asyncio.run(_main(settings, args.duration))
 
 

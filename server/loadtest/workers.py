@@ -13,7 +13,6 @@ loop (the parent fetched the certificate hash with one) is not safe.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 import multiprocessing as mp
 import queue as queue_module
@@ -22,6 +21,8 @@ from collections.abc import Callable
 from multiprocessing.connection import Connection
 from multiprocessing.process import BaseProcess
 from typing import Any
+
+from server.event_loop import install_uvloop
 
 from .plan import RunPlan
 from .viewer import Snapshot, ViewerConfig, WorkerResult, run_viewers
@@ -37,10 +38,7 @@ def _worker_main(
 ) -> None:
     logging.basicConfig(level=logging.WARNING)
     logging.getLogger("quic").setLevel(logging.WARNING)
-    with contextlib.suppress(ImportError):
-        import uvloop
-
-        uvloop.install()
+    install_uvloop()
     try:
         conn.send("ready")
         if not conn.poll(READY_TIMEOUT_S):
