@@ -8,17 +8,9 @@ from pathlib import Path
 
 import pytest
 
+from server.bench.latency import CHROMIUM, CHROMIUM_ARGS
 from server.quic import Endpoints, generate_cert, serve
 from tests.test_quic_wt import SERVER_HANDLERS, echo_factory
-
-CHROMIUM = "/usr/bin/chromium"
-CHROMIUM_ARGS = [
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-]
 
 PAGE = """<!doctype html><meta charset="utf-8"><title>wt</title>
 <script type="module">
@@ -75,7 +67,9 @@ def test_chromium_webtransport_echo(tmp_path: Path) -> None:
         )
         try:
             async with playwright_api.async_playwright() as p:
-                browser = await p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+                browser = await p.chromium.launch(
+                    executable_path=str(CHROMIUM), args=list(CHROMIUM_ARGS)
+                )
                 try:
                     page = await browser.new_page()
                     await page.goto(f"http://localhost:{endpoints.port}/")

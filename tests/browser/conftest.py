@@ -15,15 +15,9 @@ from typing import Any
 
 import pytest
 
+from server.bench.latency import CHROMIUM, CHROMIUM_ARGS
+
 DIST = Path(__file__).resolve().parents[2] / "client_web" / "dist"
-CHROMIUM = Path("/usr/bin/chromium")
-CHROMIUM_ARGS = [
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-]
 
 
 def needs(path: Path) -> list[pytest.MarkDecorator]:
@@ -61,7 +55,7 @@ def web_root() -> Iterator[str]:
 def browser() -> Iterator[Any]:
     sync_api = pytest.importorskip("playwright.sync_api")
     with sync_api.sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+        browser = pw.chromium.launch(executable_path=str(CHROMIUM), args=list(CHROMIUM_ARGS))
         try:
             yield browser
         finally:
