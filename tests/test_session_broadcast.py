@@ -78,6 +78,7 @@ def test_relay_learns_the_broadcast_and_gets_the_catalog() -> None:
 
 def test_video_groups_start_at_keyframes_and_timing_follows() -> None:
     h = Harness()
+    h.broadcast.stream_state.update(upscaler="temporal", scale=2.0)
     video = h.pipe.server.subscribe("game", "video")
     timing = h.pipe.server.subscribe("game", "timing")
     h.sync()
@@ -93,6 +94,7 @@ def test_video_groups_start_at_keyframes_and_timing_follows() -> None:
     assert [r["pts_us"] for r in records] == [2000, 3000, 4000]
     assert records[0]["keyframe"] and not records[1]["keyframe"]
     assert records[1]["input_seq"] == 30
+    assert records[0]["upscaler"] == "temporal" and records[0]["scale"] == 2.0
     stamps = records[0]["stamps"]
     assert stamps["render_start"] <= stamps["render_end"] <= stamps["publish"]
     assert metas[0].stamps[Stage.PUBLISH, 0] > 0  # publish is stamped on the frame itself

@@ -5,7 +5,16 @@ import type { InputPublisher } from "./input";
 export const UPSCALERS = ["nearest", "bilinear", "bicubic", "lanczos2", "easu", "easu_rcas", "temporal"] as const;
 export const SCALES = [1.5, 2, 3] as const;
 
-export function mountControls(root: HTMLElement, publisher: InputPublisher): void {
+/** Keeps the selects on what the server runs, except right after the viewer changed one. */
+export interface Controls {
+	follow(upscaler: unknown, scale: unknown): void;
+}
+
+// After a viewer's change the server takes a moment to switch; until then its records
+// still carry the old setting, which must not flip the select back.
+const HOLD_MS = 3000;
+
+export function mountControls(root: HTMLElement, publisher: InputPublisher): Controls {
 	const upscaler = select(
 		"upscaler",
 		UPSCALERS.map((name) => [name, name]),
@@ -16,8 +25,15 @@ export function mountControls(root: HTMLElement, publisher: InputPublisher): voi
 		SCALES.map((s) => [String(s), `${s}x`]),
 		"2",
 	);
-	upscaler.addEventListener("change", () => publisher.send({ type: "control", upscaler: upscaler.value }));
-	scale.addEventListener("change", () => publisher.send({ type: "control", scale: Number(scale.value) }));
+	let changedAt = -Infinity;
+	upscaler.addEventListener("change", () => {
+		changedAt = performance.now();
+		publisher.send({ type: "control", upscaler: upscaler.value });
+	});
+	scale.addEventListener("change", () => {
+		changedAt = performance.now();
+		publisher.send({ type: "control", scale: Number(scale.value) });
+	});
 
 	const keyframe = document.createElement("button");
 	keyframe.type = "button";
@@ -27,6 +43,18 @@ export function mountControls(root: HTMLElement, publisher: InputPublisher): voi
 	keyframe.addEventListener("click", () => publisher.send({ type: "keyframe" }));
 
 	root.append(label("upscaler", upscaler), label("scale", scale), keyframe);
+	return {
+		follow(serverUpscaler: unknown, serverScale: unknown): void {
+			if (performance.now() - changedAt < HOLD_MS) return;
+			if (typeof serverUpscaler === "string" && serverUpscaler !== upscaler.value) {
+				if ([...upscaler.options].some((o) => o.value === serverUpscaler)) upscaler.value = serverUpscaler;
+			}
+			if (typeof serverScale === "number") {
+				const match = [...scale.options].find((o) => Math.abs(Number(o.value) - serverScale) < 0.01);
+				if (match && match.value !== scale.value) scale.value = match.value;
+			}
+		},
+	};
 }
 
 function select(id: string, options: [string, string][], initial: string): HTMLSelectElement {
@@ -38,8 +66,8 @@ function select(id: string, options: [string, string][], initial: string): HTMLS
 		option.textContent = text;
 		element.append(option);
 	}
-	// The page does not know the server's current setting; this only preselects the
-	// usual default and sends nothing until the viewer changes it.
+	// Until the first timing record says what the server runs, preselect the usual
+	// default; nothing is sent until the viewer changes it.
 	element.value = initial;
 	return element;
 }

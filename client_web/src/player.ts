@@ -95,7 +95,10 @@ function main(): void {
 		// The record may still be on its way; then the id stays unknown for this frame.
 		state.lastPresentedFrameId = timing.record(ptsUs)?.frame;
 	};
-	timing.onPresented = (record, presentUs) => inputToPhoton.presented(record, presentUs);
+	timing.onPresented = (record, presentUs) => {
+		inputToPhoton.presented(record, presentUs);
+		controls.follow(record.upscaler, record.scale);
+	};
 
 	const decoder = new Decoder({
 		frame: (frame) => {
@@ -108,7 +111,7 @@ function main(): void {
 	const publisher = new InputPublisher(config.broadcast);
 	const capture = new InputCapture(canvas, publisher);
 	capture.onPress = (seq, sentMs) => inputToPhoton.press(seq, sentMs);
-	mountControls(document.getElementById("controls") as HTMLElement, publisher);
+	const controls = mountControls(document.getElementById("controls") as HTMLElement, publisher);
 
 	const stats = (): Stats => ({
 		...state,

@@ -14,6 +14,9 @@ export interface TimingRecord {
 	predicted?: boolean;
 	/** Last input seq the game applied before rendering this frame. */
 	input_seq?: number;
+	/** What the server runs now (player controls follow it). */
+	upscaler?: string;
+	scale?: number;
 	/** Wall-clock microseconds since the epoch, by stage label. */
 	stamps: Record<string, number>;
 }

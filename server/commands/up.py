@@ -155,6 +155,8 @@ async def _main(args: argparse.Namespace, config: SessionConfig, stream: StreamC
             fps=config.fps,
             bitrate=None if stream.bitrate_kbps is None else stream.bitrate_kbps * 1000,
             gop_seconds=stream.gop_seconds,
+            upscaler=config.upscaler,
+            scale=config.scale,
         )
         session = StreamingSession(
             settings,

@@ -90,6 +90,9 @@ class GameBroadcast:
         self._group_seq = -1  # sequence of the current video/timing group
         self._catalog_seq = 0
         self._published = 0  # frames published: the timing records' ``n``
+        # What the stream runs now (upscaler, scale), sent in every timing record so a
+        # page that joins later shows the server's settings, not its own defaults.
+        self.stream_state: dict[str, str | float] = {}
 
     # -- session lifecycle ------------------------------------------------------------
 
@@ -216,6 +219,7 @@ class GameBroadcast:
                 session.write_frame(sub.group_stream, encoded.fragment)
         if timing:
             record = timing_record(meta, n=n, pts_us=encoded.pts_us, keyframe=encoded.keyframe)
+            record.update(self.stream_state)
             payload = encode_timing(record)
             for _, sub in timing:
                 if sub.group_stream is not None:

@@ -46,6 +46,8 @@ class StreamSettings:
     bitrate: int | None = None  # bit/s; None: scaled from 6 Mbit/s at 720p60
     gop_seconds: float = 2.0
     cert_hash_hex: str | None = None  # pin the relay's certificate (else fetched over http)
+    upscaler: str | None = None  # what the worker starts with (shown in the player)
+    scale: float | None = None  # display / render size at start
 
 
 class StreamingSession:
@@ -79,20 +81,36 @@ class StreamingSession:
             game_input=game_input,
             worker_control=worker_control,
             request_keyframe=self.encoder.request_keyframe,
-            on_upscaler_set=on_upscaler_set,
-            on_scale_request=on_scale_request,
+            on_upscaler_set=self._upscaler_set,
+            on_scale_request=self._scale_requested,
         )
+        self._on_upscaler_set = on_upscaler_set
+        self._on_scale_request = on_scale_request
         self.broadcast = GameBroadcast(
             settings.broadcast,
             catalog_for(self.encoder).to_json(),
             on_input=self.router.handle,
             on_keyframe_wanted=self.encoder.request_keyframe,
         )
+        if settings.upscaler is not None:
+            self.broadcast.stream_state["upscaler"] = settings.upscaler
+        if settings.scale is not None:
+            self.broadcast.stream_state["scale"] = round(settings.scale, 3)
         self.link: MoqLink | None = None
         self.connected = asyncio.Event()
         self._loop: asyncio.AbstractEventLoop | None = None
         self._capture: CaptureThread | None = None
         self._skipped_seen = 0
+
+    def _upscaler_set(self, name: str) -> None:
+        self.broadcast.stream_state["upscaler"] = name
+        if self._on_upscaler_set is not None:
+            self._on_upscaler_set(name)
+
+    def _scale_requested(self, scale: float) -> None:
+        self.broadcast.stream_state["scale"] = round(scale, 3)
+        if self._on_scale_request is not None:
+            self._on_scale_request(scale)
 
     # -- running ---------------------------------------------------------------------
 
