@@ -99,8 +99,13 @@ class MoqLink:
             elif isinstance(t, StopSending):
                 self.wt.stop_sending(t.stream_id, t.error_code)
             elif isinstance(t, CloseSession):
-                log.warning(
-                    "moq session %s closed: %s (code %d)", self.remote, t.reason, t.error_code
+                # A clean close (code 0) is routine; a protocol error is worth a warning.
+                log.log(
+                    logging.INFO if t.error_code == 0 else logging.WARNING,
+                    "moq session %s closed: %s (code %d)",
+                    self.remote,
+                    t.reason,
+                    t.error_code,
                 )
                 self.wt.close(t.error_code, t.reason)
 

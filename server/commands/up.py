@@ -190,6 +190,7 @@ async def _main(args: argparse.Namespace, config: SessionConfig, stream: StreamC
             stack.check_children()
             if relay.check():
                 log.warning("relay restarted (restart #%d)", relay.restarts)
+                session.reconnect()
             if session_task.done():
                 session_task.result()  # surfaces the error
                 break

@@ -26,7 +26,7 @@ from cryptography.hazmat.primitives import serialization
 
 from . import codes, sf
 from .certs import der_sha256_hex
-from .connection import WtConnection, decode_headers
+from .connection import IDLE_TIMEOUT_S, WtConnection, decode_headers
 from .http_fetch import fetch_cert_hash
 from .server import grow_buffers
 from .session import HandlerFactory, WtRequest, WtSession
@@ -136,7 +136,11 @@ async def connect(
     authority = f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
 
     config = QuicConfiguration(
-        alpn_protocols=H3_ALPN, is_client=True, max_datagram_frame_size=65536, server_name=host
+        alpn_protocols=H3_ALPN,
+        is_client=True,
+        max_datagram_frame_size=65536,
+        server_name=host,
+        idle_timeout=IDLE_TIMEOUT_S,  # a vanished relay is noticed in seconds, not a minute
     )
     if cert_hash_hex is not None or not verify:
         config.verify_mode = ssl.CERT_NONE

@@ -116,6 +116,11 @@ def close_reason(capsules: bytes) -> str:
     return "closed by peer"
 
 
+# Both ends detect a silent peer within this; PINGs every KEEPALIVE_S keep live ones.
+IDLE_TIMEOUT_S = 10.0
+KEEPALIVE_S = 2.5
+
+
 class WtConnection(QuicConnectionProtocol):
     """Base protocol: subclasses implement `headers_received` (request or response)."""
 
@@ -128,6 +133,12 @@ class WtConnection(QuicConnectionProtocol):
         self._stream_owner: dict[int, WtSession] = {}
         self._flush_handle: asyncio.Handle | None = None
         self._prune_at = _PRUNE_AT
+        # A peer that vanishes without CONNECTION_CLOSE (a killed relay, a closed
+        # laptop) is only noticed by the idle timeout; keepalive PINGs keep a quiet but
+        # live connection under it, so the timeout can be short (IDLE_TIMEOUT_S).
+        self._keepalive_handle: asyncio.TimerHandle | None = self._loop.call_later(
+            KEEPALIVE_S, self._keepalive
+        )
 
     # --- helpers used by WtSession -------------------------------------------
 
@@ -153,6 +164,14 @@ class WtConnection(QuicConnectionProtocol):
     def _flush(self) -> None:
         self._flush_handle = None
         self.transmit()
+
+    def _keepalive(self) -> None:
+        self._keepalive_handle = None
+        if self._closed.is_set():
+            return
+        self._quic.send_ping(0)
+        self.transmit()
+        self._keepalive_handle = self._loop.call_later(KEEPALIVE_S, self._keepalive)
 
     def register_stream(self, stream_id: int, session: WtSession) -> None:
         self._stream_owner[stream_id] = session

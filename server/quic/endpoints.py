@@ -9,6 +9,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from .certs import CertBundle
+from .connection import IDLE_TIMEOUT_S
 from .http_side import HttpSide, Route, bind_tcp, serve_http
 from .server import DEFAULT_PROTOCOLS, WtServer, bind_udp, serve_webtransport
 from .session import HandlerFactory
@@ -53,13 +54,19 @@ async def serve(
     allow_no_protocol: bool = False,
     web_root: str | Path | None = None,
     routes: Mapping[str, Route] | None = None,
+    idle_timeout: float = IDLE_TIMEOUT_S,
 ) -> Endpoints:
     """WebTransport on UDP and HTTP (hash, static files, routes) on TCP, one port."""
     udp, tcp = bind_pair(host, port)
     side = HttpSide(cert.sha256_hex, web_root=web_root, routes=routes)
     try:
         wt = await serve_webtransport(
-            factory, cert, protocols=protocols, allow_no_protocol=allow_no_protocol, sock=udp
+            factory,
+            cert,
+            protocols=protocols,
+            allow_no_protocol=allow_no_protocol,
+            sock=udp,
+            idle_timeout=idle_timeout,
         )
     except BaseException:
         udp.close()

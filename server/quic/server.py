@@ -23,7 +23,7 @@ from aioquic.quic.connection import QuicConnection
 
 from . import sf
 from .certs import CertBundle
-from .connection import WtConnection, decode_headers
+from .connection import IDLE_TIMEOUT_S, WtConnection, decode_headers
 from .session import HandlerFactory, WtRequest, WtSession
 
 log = logging.getLogger(__name__)
@@ -167,7 +167,9 @@ def bind_udp(host: str, port: int) -> socket.socket:
     return sock
 
 
-def server_configuration(cert: CertBundle, idle_timeout: float = 30.0) -> QuicConfiguration:
+def server_configuration(
+    cert: CertBundle, idle_timeout: float = IDLE_TIMEOUT_S
+) -> QuicConfiguration:
     config = QuicConfiguration(
         alpn_protocols=H3_ALPN,
         is_client=False,
@@ -187,7 +189,7 @@ async def serve_webtransport(
     protocols: Sequence[str] = DEFAULT_PROTOCOLS,
     allow_no_protocol: bool = False,
     wt_max_sessions: int = 1,
-    idle_timeout: float = 30.0,
+    idle_timeout: float = IDLE_TIMEOUT_S,
     sock: socket.socket | None = None,
 ) -> WtServer:
     """Listen for WebTransport on UDP `host`:`port` (or an already bound `sock`)."""

@@ -102,6 +102,13 @@ class StreamingSession:
         self._capture: CaptureThread | None = None
         self._skipped_seen = 0
 
+    def reconnect(self) -> None:
+        """Drop the relay connection now (say, the relay was restarted): the relay loop
+        connects again at once instead of waiting for the idle timeout."""
+        link = self.link
+        if link is not None and not link.closed:
+            link.close(0, "reconnecting")
+
     def _upscaler_set(self, name: str) -> None:
         self.broadcast.stream_state["upscaler"] = name
         if self._on_upscaler_set is not None:
