@@ -283,3 +283,15 @@ def test_cuda_float16_matches_cpu() -> None:
         easu_gpu = EasuUpscaler(device="cuda", dtype=torch.float16).upscale(frame, display)
         easu_cpu = EasuUpscaler().upscale(frame, display)
         assert (easu_gpu.float().cpu() - easu_cpu).abs().max() < 8 / 255
+
+
+@pytest.mark.parametrize("display", [Size(96, 64), Size(82, 54)])
+def test_band_size_does_not_change_the_result(display: Size) -> None:
+    img = chw(random_color(Size(48, 32), seed=8))
+    whole = Easu(band_pixels=1 << 30)(img, (display.height, display.width))
+    for band in (1, 500, None):  # one row per band, a few rows, the per-thread default
+        got = Easu(band_pixels=band)(img, (display.height, display.width))
+        assert torch.equal(got, whole)
+        padded = F.pad(got[None], (1, 1, 1, 1))[0]
+        sharpened = Rcas(band_pixels=band)(padded.clone())
+        assert torch.equal(sharpened, Rcas(band_pixels=1 << 30)(padded.clone()))

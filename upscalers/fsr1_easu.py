@@ -31,6 +31,8 @@ What makes it fast on a CPU:
   of one nearest-upsampled copy of the input, so the 12 taps cost no gathers;
   other scales gather whole rows (contiguous copies) after gathering the columns
   once at input height;
+- at integer scales the de-ringing min/max of each quad is found once at input
+  size and upsampled like the taps, instead of per output pixel;
 - the rotated, stretched distance is a quadratic form ``a ox^2 + b ox oy + c oy^2``
   whose per-pixel coefficients are computed once and shared by the 12 taps;
 - the kernel's constant factors (``1/4`` of the base, ``lob^2`` of the window)
@@ -60,6 +62,19 @@ DIR_ZERO = 1.0 / 32768.0
 # representable in float16.
 TINY = 1.0 / 65536.0
 PAD = 2  # texels of edge replication around the input (taps reach f - 1 .. f + 2)
+
+
+BAND_PIXELS_PER_THREAD = 1 << 15
+
+
+def band_rows(band_pixels: int | None, width: int) -> int:
+    """Rows per band: ``band_pixels`` (default: 32 Ki pixels per torch thread) / ``width``.
+
+    On the 2-core Xeon (2 MiB L2 per core) 32 Ki pixels per thread beat 128 Ki by
+    about 12 % for EASU and RCAS: a band's ~20 scratch planes stay in L2."""
+    if band_pixels is None:
+        band_pixels = BAND_PIXELS_PER_THREAD * torch.get_num_threads()
+    return max(1, band_pixels // width)
 
 
 def axis_map(n_in: int, n_out: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -132,6 +147,10 @@ class _Sampler(ABC):
     def blend_fields(self, fields: torch.Tensor) -> torch.Tensor:
         """Bilinear blend of per-texel (C, H + 2, W + 2) fields (texels -1 .. n) at 'f g j k'."""
 
+    def quad_bounds(self, y0: int, y1: int) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """Min and max of the quad 'f g j k' of the output rows y0 .. y1 - 1, if precomputed."""
+        return None
+
 
 class _NearestSampler(_Sampler):
     """Integer scales: taps are views of a nearest-upsampled (repeated texels) copy.
@@ -150,6 +169,7 @@ class _NearestSampler(_Sampler):
         self.phase_x = fx.to(buf.dtype).repeat(wo // kx).to(buf.device)
         self.phase_y = fy.to(buf.dtype).repeat(ho // ky).to(buf.device).unsqueeze(1)
         self.upsampled = torch.empty(0)
+        self.quad: list[torch.Tensor] = []
         self.offsets()
 
     def _start(self, k: int, t: int) -> int:
@@ -159,6 +179,21 @@ class _NearestSampler(_Sampler):
         _, hp, wp = padded.shape
         out = self.buf("upsampled", 3, self.ky * hp, self.kx * wp)
         self.upsampled = nearest(padded, self.ky * hp, self.kx * wp, out)
+        # The de-ringing bounds are properties of the quad at texel 'f': found once at
+        # input size and upsampled like the taps (index = padded index of 'f').
+        self.quad = []
+        for name, op in (("quad_lo", torch.minimum), ("quad_hi", torch.maximum)):
+            q = op(padded[:, :-1, :-1], padded[:, :-1, 1:], out=self.buf(name, 3, hp - 1, wp - 1))
+            op(q, padded[:, 1:, :-1], out=q)
+            op(q, padded[:, 1:, 1:], out=q)
+            up = self.buf(name + "_up", 3, self.ky * (hp - 1), self.kx * (wp - 1))
+            self.quad.append(nearest(q, self.ky * (hp - 1), self.kx * (wp - 1), up))
+
+    def quad_bounds(self, y0: int, y1: int) -> tuple[torch.Tensor, torch.Tensor] | None:
+        wo = self.out_hw[1]
+        r0, x0 = self._start(self.ky, 0) + y0, self._start(self.kx, 0)
+        lo, hi = (q[:, r0 : r0 + y1 - y0, x0 : x0 + wo] for q in self.quad)
+        return lo, hi
 
     def tap(self, tx: int, ty: int, y0: int, y1: int) -> torch.Tensor:
         wo = self.out_hw[1]
@@ -262,7 +297,7 @@ class Easu:
     use one instance per thread.
     """
 
-    def __init__(self, dtype: torch.dtype | None = None, band_pixels: int = 1 << 17) -> None:
+    def __init__(self, dtype: torch.dtype | None = None, band_pixels: int | None = None) -> None:
         self.dtype = dtype
         # Per-pixel work runs over bands of rows of about this many pixels: small
         # enough for the band's temporaries to stay in cache, large enough to keep
@@ -304,7 +339,7 @@ class Easu:
         fields = sampler.blend_fields(_texel_fields(padded, buf))
         if out is None:
             out = torch.empty((3, ho, wo), dtype=buf.dtype, device=buf.device)
-        rows = max(1, self.band_pixels // wo) if image.device.type == "cpu" else ho
+        rows = band_rows(self.band_pixels, wo) if image.device.type == "cpu" else ho
         for y0 in range(0, ho, rows):
             y1 = min(ho, y0 + rows)
             band = fields[:, y0:y1]
@@ -393,8 +428,9 @@ def _accumulate(
     shape = a.shape
     acc.zero_()
     weight_sum = buf("weight_sum", *shape).zero_()
-    lo = buf("quad_lo", *acc.shape)
-    hi = buf("quad_hi", *acc.shape)
+    bounds = sampler.quad_bounds(y0, y1)
+    lo = buf("band_lo", *acc.shape) if bounds is None else bounds[0]
+    hi = buf("band_hi", *acc.shape) if bounds is None else bounds[1]
     # With d2s = d^2 - 5/2: (d^2 - 1)(d^2 - 4) = d2s^2 - 9/4 and d^2 - clip = d2s - clip_s.
     clip_s = clip.sub_(2.5)
     c_row = buf("c_row", *shape)
@@ -412,6 +448,8 @@ def _accumulate(
             weight_sum.add_(w)
             colour = sampler.tap(tx, ty, y0, y1)
             acc.addcmul_(colour, w)
+            if bounds is not None:
+                continue
             if (tx, ty) == (0, 0):
                 lo.copy_(colour)
                 hi.copy_(colour)

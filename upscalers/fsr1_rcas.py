@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import torch
 
-from upscalers.fsr1_easu import TINY, Buffers
+from upscalers.fsr1_easu import TINY, Buffers, band_rows
 
 RCAS_LIMIT = 0.25 - 1.0 / 16.0
 # FSR's sample default: 0.2 stops below the strongest sharpening.
@@ -54,7 +54,7 @@ class Rcas:
         self,
         sharpness: float = DEFAULT_SHARPNESS,
         denoise: bool = False,
-        band_pixels: int = 1 << 17,
+        band_pixels: int | None = None,
     ) -> None:
         if not sharpness >= 0.0:
             raise ValueError(f"sharpness must be >= 0 stops, got {sharpness}")
@@ -79,7 +79,7 @@ class Rcas:
         fill_edges(padded)
         if out is None:
             out = torch.empty((3, h, w), dtype=padded.dtype, device=padded.device)
-        rows = max(1, self.band_pixels // w) if padded.device.type == "cpu" else h
+        rows = band_rows(self.band_pixels, w) if padded.device.type == "cpu" else h
         for y0 in range(0, h, rows):
             y1 = min(h, y0 + rows)
             self._band(padded, out[:, y0:y1], y0, y1)
@@ -103,8 +103,10 @@ class Rcas:
         # mn / mx and (1 - mx) / (1 - mn), with a tiny bias that keeps 0/0 finite
         # (a black ring gives 1: no limit from that side, as FSR's max() of a NaN).
         ratio = torch.div(mn.add_(TINY), mx.add_(TINY), out=buf("ratio", *shape))
-        room_up = mx.neg_().add_(1.0 + 2.0 * TINY)  # 1 - mx + TINY
-        room_down = mn.neg_().add_(1.0 + 2.0 * TINY)  # 1 - mn + TINY
+        # 1 - mx + TINY and 1 - mn + TINY, each written by one op.
+        one = torch.full((), 1.0 + 2.0 * TINY, dtype=p.dtype, device=p.device)
+        room_up = torch.sub(one, mx, out=buf("room_up", *shape))
+        room_down = torch.sub(one, mn, out=mx)
         torch.minimum(ratio, room_up.div_(room_down), out=ratio)
         lobe = torch.amin(ratio, dim=0, out=buf("lobe", *shape[1:]))
         lobe.mul_(-0.25).clamp_min_(-RCAS_LIMIT).mul_(self.scale)
