@@ -296,9 +296,9 @@ class Easu:
 
     def __init__(self, dtype: torch.dtype | None = None, band_pixels: int | None = None) -> None:
         self.dtype = dtype
-        # Per-pixel work runs over bands of rows of about this many pixels: small
-        # enough for the band's temporaries to stay in cache, large enough to keep
-        # the per-op overhead of eager torch small.
+        # Per-pixel work runs over bands of rows of about this many pixels (None:
+        # see band_rows): small enough for the band's temporaries to stay in cache,
+        # large enough to keep the per-op overhead of eager torch small.
         self.band_pixels = band_pixels
         self._key: tuple[object, ...] | None = None
         self._buf = Buffers(torch.device("cpu"), torch.float32)
