@@ -41,16 +41,6 @@ def rgb_to_ycocg(rgb: torch.Tensor) -> torch.Tensor:
     return torch.stack((0.25 * rb + 0.5 * g, 0.5 * (r - b), 0.5 * g - 0.25 * rb))
 
 
-def ycocg_to_rgb(ycocg: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
-    """(3, H, W) YCoCg -> RGB written into ``out`` (3, H, W)."""
-    y, co, cg = ycocg.unbind(0)
-    t = y - cg
-    torch.add(t, co, out=out[0])
-    torch.add(y, cg, out=out[1])
-    torch.sub(t, co, out=out[2])
-    return out
-
-
 def pad1(x: torch.Tensor) -> torch.Tensor:
     """(C, H, W) -> (C, H + 2, W + 2), edges replicated."""
     return F.pad(x.unsqueeze(0), (1, 1, 1, 1), mode="replicate")[0]
@@ -216,3 +206,50 @@ def nearest_index(n_display: int, n_render: int, dev: torch.device) -> torch.Ten
     """Index of the render pixel whose area holds each display pixel centre."""
     i = torch.arange(n_display, device=dev, dtype=torch.float64).add_(0.5)
     return i.mul_(n_render / n_display).floor_().clamp_(0, n_render - 1).long()
+
+
+def neighbour_sum_planar(x: torch.Tensor, axis: int, out: torch.Tensor) -> torch.Tensor:
+    """x[p - 1] + x[p + 1] along display rows (axis 0) or columns (axis 1) of a planar
+    (S, S, h, w) plane (see ``reconstruct_blocked``; S >= 2), edges replicated, into
+    ``out``. Sub-pixel b's neighbours are sub-pixels b - 1 and b + 1 of the same render
+    pixel, or of the render pixel before / after at the block edges."""
+    sub, blk = axis, axis + 2
+    s, n = x.shape[sub], x.shape[blk]
+    blk -= 1  # index of the block dimension once ``sub`` is selected away
+    for b in range(s):
+        o = out.select(sub, b)
+        if 0 < b < s - 1:
+            torch.add(x.select(sub, b - 1), x.select(sub, b + 1), out=o)
+            continue
+        if b == 0:
+            left, right = x.select(sub, s - 1), x.select(sub, 1)
+            torch.add(
+                left.narrow(blk, 0, n - 1), right.narrow(blk, 1, n - 1), out=o.narrow(blk, 1, n - 1)
+            )
+            edge = x.select(sub, 0).narrow(blk, 0, 1)
+            torch.add(edge, right.narrow(blk, 0, 1), out=o.narrow(blk, 0, 1))
+        if b == s - 1:
+            left, right = x.select(sub, s - 2), x.select(sub, 0)
+            torch.add(
+                left.narrow(blk, 0, n - 1), right.narrow(blk, 1, n - 1), out=o.narrow(blk, 0, n - 1)
+            )
+            edge = x.select(sub, s - 1).narrow(blk, n - 1, 1)
+            torch.add(left.narrow(blk, n - 1, 1), edge, out=o.narrow(blk, n - 1, 1))
+    return out
+
+
+_YCOCG_TO_RGB = ((1.0, 1.0, -1.0), (1.0, 0.0, 1.0), (1.0, -1.0, -1.0))
+
+
+def ycocg_to_rgb8(ycocg: torch.Tensor) -> torch.Tensor:
+    """(3, H, W) YCoCg of sRGB values in [0, 1] -> (3, H, W) uint8 sRGB, rounded half up
+    and clamped: the conversion, the scale to 255 and the rounding offset are one
+    matrix product, so the display-size output costs three passes."""
+    _, big_h, big_w = ycocg.shape
+    dev, dt = ycocg.device, ycocg.dtype
+    m = torch.tensor(_YCOCG_TO_RGB, device=dev, dtype=dt).mul_(255.0)
+    half = torch.full((3, 1), 0.5, device=dev, dtype=dt)
+    rgb = torch.addmm(half, m, ycocg.reshape(3, -1)).clamp_(0.0, 255.0)
+    out = torch.empty((3, big_h, big_w), device=dev, dtype=torch.uint8)
+    out.view(3, -1).copy_(rgb)
+    return out
