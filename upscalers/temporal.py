@@ -157,8 +157,7 @@ class TemporalUpscaler(Upscaler):
         jit = ops.jitter(frame)
 
         # ---- render size: colour, box, dilated motion, trust, accumulated weight ----
-        rgb = ops.as_tensor(frame.color, dev).permute(2, 0, 1).to(dt).mul_(1.0 / 255.0)
-        ycocg = ops.rgb_to_ycocg(rgb)
+        ycocg = ops.rgb8_to_ycocg(ops.as_tensor(frame.color, dev), dt)
         if p.presharpen > 0.0:
             ycocg = ops.sharpen(ycocg, p.presharpen)
         lo, hi = ops.box_3x3(ycocg)
@@ -173,10 +172,11 @@ class TemporalUpscaler(Upscaler):
         else:
             near, far = nf
             lin = torch.reciprocal(depth.mul(-(far - near) / (near * far)).add_(1.0 / near))
-        mask = ops.as_tensor(frame.dynamic_mask, dev).to(dt).unsqueeze(0)
-        _, mask_d = ops.box_3x3(mask)
+        mask = ops.as_tensor(frame.dynamic_mask, dev)
+        # Most frames have no moving object: no need to dilate an empty mask.
+        mask_d = ops.box_3x3(mask.to(dt).unsqueeze(0))[1][0] if bool(mask.any()) else None
         lin_d, mv = ops.closest_3x3(lin, motion.permute(2, 0, 1))
-        prev_weight = self._reproject_weight(lin_d, mv, mask_d[0], jit)
+        prev_weight = self._reproject_weight(lin_d, mv, mask_d, jit)
         self._prev_far = ops.max_2x2(lin)
         self._prev_jitter = jit
 
@@ -227,7 +227,14 @@ class TemporalUpscaler(Upscaler):
         grid = self._grid_buffer
         if grid is None or grid.shape != self._base_grid.shape:
             grid = self._grid_buffer = torch.empty_like(self._base_grid)
-        torch.addcmul(self._base_grid, motion, step, out=grid)
+        base = self._base_grid
+        if base.shape[0] > 1:
+            # Sub-pixel (a, b) of a block sits at a constant offset from sub-pixel (0, 0):
+            # the motion is added at render size and the offsets in the one display pass.
+            offsets = base[:, :, :1, :1] - base[:1, :1, :1, :1]
+            torch.add(torch.addcmul(base[:1, :1], motion, step), offsets, out=grid)
+        else:
+            torch.addcmul(base, motion, step, out=grid)
         s_a, s_b, rows, cols = layout
         n = s_a * s_b
         fetched = F.grid_sample(
@@ -276,7 +283,7 @@ class TemporalUpscaler(Upscaler):
         self,
         lin_d: torch.Tensor,
         mv: torch.Tensor,
-        mask_d: torch.Tensor,
+        mask_d: torch.Tensor | None,
         jit: tuple[float, float],
     ) -> torch.Tensor:
         """(h, w) accumulated weight fetched at the reprojected position, times trust:
@@ -299,7 +306,8 @@ class TemporalUpscaler(Upscaler):
         # clearly nearer than this surface.
         far = self._prev_far.view(-1).take(idx).mul_(1.0 + p.depth_tolerance)
         trust = (inside & (far >= lin_d)).to(dt)
-        trust.mul_(mask_d.mul(p.dynamic_keep - 1.0).add_(1.0))
+        if mask_d is not None:
+            trust.mul_(mask_d.mul(p.dynamic_keep - 1.0).add_(1.0))
         weight = torch.nan_to_num(self._weight.view(-1).take(idx), nan=0.0, posinf=0.0)
         return weight.clamp_(0.0, p.max_weight).mul_(trust)
 

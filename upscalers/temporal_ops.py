@@ -34,11 +34,16 @@ def input_device(frame: RenderFrame, default: torch.device) -> torch.device:
     return color.device if isinstance(color, torch.Tensor) else default
 
 
-def rgb_to_ycocg(rgb: torch.Tensor) -> torch.Tensor:
-    """(3, ...) RGB -> (3, ...) Y, Co, Cg (lossless-invertible linear transform)."""
-    r, g, b = rgb.unbind(0)
-    rb = r + b
-    return torch.stack((0.25 * rb + 0.5 * g, 0.5 * (r - b), 0.5 * g - 0.25 * rb))
+_RGB_TO_YCOCG = ((0.25, 0.5, 0.25), (0.5, 0.0, -0.5), (-0.25, 0.5, -0.25))
+
+
+def rgb8_to_ycocg(rgb: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    """(H, W, 3) uint8 sRGB -> (3, H, W) Y, Co, Cg of the values in [0, 1]: one cast to
+    planar float, then the transform and the 1/255 scale as one matrix product."""
+    h, w, _ = rgb.shape
+    x = rgb.permute(2, 0, 1).to(dtype)
+    m = torch.tensor(_RGB_TO_YCOCG, device=rgb.device, dtype=dtype).mul_(1.0 / 255.0)
+    return torch.mm(m, x.view(3, -1)).view(3, h, w)
 
 
 def pad1(x: torch.Tensor) -> torch.Tensor:
@@ -244,12 +249,15 @@ _YCOCG_TO_RGB = ((1.0, 1.0, -1.0), (1.0, 0.0, 1.0), (1.0, -1.0, -1.0))
 def ycocg_to_rgb8(ycocg: torch.Tensor) -> torch.Tensor:
     """(3, H, W) YCoCg of sRGB values in [0, 1] -> (3, H, W) uint8 sRGB, rounded half up
     and clamped: the conversion, the scale to 255 and the rounding offset are one
-    matrix product, so the display-size output costs three passes."""
+    matrix product. The result is a view of an (H, W, 3) buffer, the ring U layout, so
+    copying it into a slot is a plain memcpy; the interleave happens here, one channel
+    at a time (a strided cast is several times cheaper than a general transpose)."""
     _, big_h, big_w = ycocg.shape
     dev, dt = ycocg.device, ycocg.dtype
     m = torch.tensor(_YCOCG_TO_RGB, device=dev, dtype=dt).mul_(255.0)
     half = torch.full((3, 1), 0.5, device=dev, dtype=dt)
     rgb = torch.addmm(half, m, ycocg.reshape(3, -1)).clamp_(0.0, 255.0)
-    out = torch.empty((3, big_h, big_w), device=dev, dtype=torch.uint8)
-    out.view(3, -1).copy_(rgb)
-    return out
+    out = torch.empty((big_h * big_w, 3), device=dev, dtype=torch.uint8)
+    for c in range(3):
+        out[:, c].copy_(rgb[c])
+    return out.view(big_h, big_w, 3).permute(2, 0, 1)
