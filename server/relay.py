@@ -107,6 +107,7 @@ class Relay:
         # One monitor per broadcast's video track: its fps and jitter as the relay
         # receives it, and the time to fan each frame out ("relay" stage).
         self.monitors: dict[str, FrameRateMonitor] = {}
+        self._viewer_labels: set[tuple[str, str]] = set()
         self.links: dict[int, MoqLink] = {}
         self._ids = itertools.count(1)
         self._endpoints: Endpoints | None = None
@@ -260,16 +261,13 @@ class Relay:
     def _update_counters(self) -> None:
         for conn_id in list(self._conn_stats):
             self._count(conn_id)
-        m = self.metrics
-        for (broadcast, track), count in self._viewer_counts().items():
-            m.viewers.labels(broadcast, track).set(count)
-
-    def _viewer_counts(self) -> dict[tuple[str, str], int]:
-        counts: dict[tuple[str, str], int] = {}
-        for broadcast in self.core.broadcasts:
-            for track in ("video", "timing", "catalog.json"):
-                counts[(broadcast, track)] = self.core.viewer_count(broadcast, track)
-        return counts
+        counts = self.core.viewer_counts()
+        # A track that ended reads 0 rather than keeping its last count.
+        for key in self._viewer_labels - counts.keys():
+            self.metrics.viewers.labels(*key).set(0)
+        for key, count in counts.items():
+            self.metrics.viewers.labels(*key).set(count)
+        self._viewer_labels = set(counts)
 
     def snapshot(self) -> dict[str, object]:
         return {
@@ -277,7 +275,7 @@ class Relay:
             "sessions": len(self.links),
             "broadcasts": sorted(self.core.broadcasts),
             "monitor": {b: m.snapshot().as_dict() for b, m in self.monitors.items()},
-            "viewers": {f"{b}/{t}": n for (b, t), n in self._viewer_counts().items()},
+            "viewers": {f"{b}/{t}": n for (b, t), n in self.core.viewer_counts().items()},
             "per_session": {
                 str(cid): asdict(s) if (s := self.core.stats(cid)) is not None else None
                 for cid in self.links

@@ -17,7 +17,6 @@ import tempfile
 import time
 import uuid
 from pathlib import Path
-from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
@@ -68,22 +67,6 @@ class SessionConfig(BaseModel):
     @property
     def scale(self) -> float:
         return Size.parse(self.display_size).width / Size.parse(self.render_size).width
-
-
-def session_config_from(args: Any) -> SessionConfig | None:
-    """The SessionConfig of ``upcast up`` / ``upcast preview`` flags (None: refused,
-    the reason printed)."""
-    from server.config_errors import validated
-
-    return validated(
-        SessionConfig,
-        "session",
-        scene=args.scene,
-        render_size=args.render_size,
-        display_size=args.display_size,
-        fps=args.fps,
-        upscaler=args.upscaler,
-    )
 
 
 def _cli(*args: str) -> list[str]:

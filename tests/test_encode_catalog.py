@@ -30,7 +30,14 @@ RENDITION_TYPES: dict[str, type | tuple[type, ...]] = {
     "optimizeForLatency": bool,
     "jitter": int,
 }
-HANG_VIDEO_JS = Path("/tmp/moqsrc/moq-hang-0.3.5/package/catalog/video.js")
+CLIENT_MODULES = Path(__file__).resolve().parents[1] / "client_web" / "node_modules"
+HANG_VIDEO_JS = CLIENT_MODULES / "@moq" / "hang" / "catalog" / "video.js"
+# ./dev test installs client_web's npm packages (with node) before the tests, so in
+# CI a missing @moq/hang is a broken setup and must fail, not skip.
+HANG_MISSING = not os.environ.get("CI") and (
+    not HANG_VIDEO_JS.exists() or shutil.which("node") is None
+)
+HANG_REASON = "needs node and client_web/node_modules (npm ci in client_web)"
 
 
 def emitted() -> dict[str, Any]:
@@ -69,7 +76,7 @@ def test_optional_fields_left_out_when_unset() -> None:
     assert "bitrate" not in r and "description" not in r
 
 
-@pytest.mark.skipif(not HANG_VIDEO_JS.exists(), reason="hang sources not unpacked here")
+@pytest.mark.skipif(HANG_MISSING, reason=HANG_REASON)
 def test_field_names_exist_in_hang_schema() -> None:
     source = HANG_VIDEO_JS.read_text()
     schema = source[source.index("VideoConfigSchema = z.object(") :]
@@ -78,7 +85,6 @@ def test_field_names_exist_in_hang_schema() -> None:
     assert set(RENDITION_TYPES) <= declared
 
 
-CLIENT_MODULES = Path(__file__).resolve().parents[1] / "client_web" / "node_modules"
 _HANG_CHECK_JS = """
 import { readFileSync } from "node:fs";
 import * as Catalog from "HANG/catalog/index.js";
@@ -93,10 +99,7 @@ console.log(JSON.stringify({codec: r.codec, timescale: init.timescale,
 """
 
 
-@pytest.mark.skipif(
-    not (CLIENT_MODULES / "@moq" / "hang").exists() or shutil.which("node") is None,
-    reason="needs node and client_web/node_modules (npm install in client_web)",
-)
+@pytest.mark.skipif(HANG_MISSING, reason=HANG_REASON)
 def test_hang_itself_accepts_catalog_and_fragments(tmp_path: Path) -> None:
     """Run @moq/hang's own zod schema and CMAF parser (what @moq/watch uses) on our bytes."""
     enc = VideoEncoder(EncoderConfig(320, 180, fps=30))

@@ -29,6 +29,7 @@ import numpy as np
 import numpy.typing as npt
 
 from server.bench.report import BenchReport
+from server.browser_paths import CHROMIUM, CHROMIUM_ARGS, WEB_ROOT
 from server.frame import Size
 from server.relay_process import RelayEndpoint, RelayProcess
 from server.session.runner import StreamingSession, StreamSettings
@@ -36,18 +37,6 @@ from server.stack import LocalStack, SessionConfig
 
 log = logging.getLogger(__name__)
 
-WEB_ROOT = Path(__file__).resolve().parents[2] / "client_web" / "dist"
-CHROMIUM = Path("/usr/bin/chromium")
-CHROMIUM_ARGS = (
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-    # A page in a headless tab is never "hidden", but keep timers at full rate anyway.
-    "--disable-background-timer-throttling",
-    "--disable-renderer-backgrounding",
-)
 # Stages of the budget, in pipeline order (names of client_web/src/stats.ts); "render"
 # comes before render_end and is reported for context, outside "total".
 STAGES = (

@@ -16,17 +16,15 @@ import threading
 import time
 from typing import Any
 
+from server.stack_args import add_session_arguments, session_config_from
+
 log = logging.getLogger(__name__)
 
 CHECK_INTERVAL_S = 0.5
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--scene", default="default", help="scene preset (default: default)")
-    parser.add_argument("--render-size", default="640x360", help="game render size WIDTHxHEIGHT")
-    parser.add_argument("--display-size", default="1280x720", help="upscaled size WIDTHxHEIGHT")
-    parser.add_argument("--fps", type=float, default=60.0, help="game frame rate")
-    parser.add_argument("--upscaler", default="bilinear", help="initial upscaler")
+    add_session_arguments(parser)
     parser.add_argument(
         "--host", default="127.0.0.1", help="address the preview binds (e.g. 0.0.0.0 or ::)"
     )
@@ -68,7 +66,7 @@ def _bind_message(host: str, port: int, exc: OSError) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from server.preview import PreviewServer
-    from server.stack import LocalStack, session_config_from
+    from server.stack import LocalStack
 
     config = session_config_from(args)
     if config is None:

@@ -12,12 +12,12 @@ import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from server.browser_paths import WEB_ROOT
+
 if TYPE_CHECKING:
     from server.quic.certs import CertBundle
 
 log = logging.getLogger(__name__)
-
-DEFAULT_WEB_ROOT = Path(__file__).resolve().parents[2] / "client_web" / "dist"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -29,7 +29,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--web-root",
         type=Path,
         default=None,
-        help=f"static web client to serve (default: {DEFAULT_WEB_ROOT} if built)",
+        help=f"static web client to serve (default: {WEB_ROOT} if built)",
     )
     parser.add_argument(
         "--cert", type=Path, default=None, help="certificate PEM (default: generated)"
@@ -96,8 +96,8 @@ async def _serve(args: argparse.Namespace, cert: CertBundle) -> int:
     from server.relay import Relay, RelayConfig
 
     web_root = args.web_root
-    if web_root is None and (DEFAULT_WEB_ROOT / "index.html").is_file():
-        web_root = DEFAULT_WEB_ROOT
+    if web_root is None and (WEB_ROOT / "index.html").is_file():
+        web_root = WEB_ROOT
     config = RelayConfig(
         host=args.host,
         port=args.port,

@@ -19,6 +19,9 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from server.browser_paths import WEB_ROOT
+from server.stack_args import add_session_arguments, session_config_from
+
 if TYPE_CHECKING:
     from server.stack import SessionConfig
     from server.stream_config import StreamConfig
@@ -27,15 +30,10 @@ log = logging.getLogger(__name__)
 
 CHECK_INTERVAL_S = 0.5
 CONNECT_TIMEOUT_S = 30.0
-DEFAULT_WEB_ROOT = Path(__file__).resolve().parents[2] / "client_web" / "dist"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--scene", default="default", help="scene preset (default: default)")
-    parser.add_argument("--render-size", default="640x360", help="game render size WIDTHxHEIGHT")
-    parser.add_argument("--display-size", default="1280x720", help="streamed size WIDTHxHEIGHT")
-    parser.add_argument("--fps", type=float, default=60.0, help="game and stream frame rate")
-    parser.add_argument("--upscaler", default="bilinear", help="initial upscaler")
+    add_session_arguments(parser)
     parser.add_argument(
         "--host", default="::", help="relay bind address (default :: = all, dual stack)"
     )
@@ -57,7 +55,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="TCP port of the session's Prometheus metrics (default: relay port + 1; 0 = off)",
     )
     parser.add_argument(
-        "--web-root", type=Path, default=DEFAULT_WEB_ROOT, help="built web client (client_web/dist)"
+        "--web-root", type=Path, default=WEB_ROOT, help="built web client (client_web/dist)"
     )
     parser.add_argument(
         "--duration", type=float, default=None, help="stop after SECONDS (default: until Ctrl-C)"
@@ -91,7 +89,6 @@ def _session_host(bind: str) -> str:
 def run(args: argparse.Namespace) -> int:
     from server.config_errors import validated
     from server.event_loop import install_uvloop
-    from server.stack import session_config_from
     from server.stream_config import StreamConfig
 
     problem = _problem(args)

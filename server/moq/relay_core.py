@@ -202,6 +202,10 @@ class RelayCore:
     def broadcasts(self) -> dict[str, ConnId]:
         return dict(self._owners)
 
+    def viewer_counts(self) -> dict[TrackKey, int]:
+        """Subscribers of every track the relay carries now."""
+        return {key: len(track.viewers) for key, track in self._tracks.items()}
+
     def viewer_count(self, broadcast: str, track: str) -> int:
         found = self._tracks.get((broadcast, track))
         return 0 if found is None else len(found.viewers)

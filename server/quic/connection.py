@@ -271,4 +271,7 @@ class WtConnection(QuicConnectionProtocol):
         self._stream_owner.clear()
 
     def headers_received(self, event: HeadersReceived) -> None:
+        """The one hook of each side: the server answers a CONNECT request
+        (server.py), the client reads the CONNECT response (client.py). Both
+        subclasses implement it; this base is never instantiated."""
         raise NotImplementedError

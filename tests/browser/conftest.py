@@ -10,26 +10,10 @@ import functools
 import http.server
 import threading
 from collections.abc import Iterator
-from pathlib import Path
-from typing import Any
 
 import pytest
 
-from server.bench.latency import CHROMIUM, CHROMIUM_ARGS
-
-DIST = Path(__file__).resolve().parents[2] / "client_web" / "dist"
-
-
-def needs(path: Path) -> list[pytest.MarkDecorator]:
-    """Marks for a browser test module that loads ``path`` from the build."""
-    return [
-        pytest.mark.slow,
-        pytest.mark.skipif(
-            not path.exists(),
-            reason="client_web/dist missing: run `npm ci && npm run build` in client_web",
-        ),
-        pytest.mark.skipif(not CHROMIUM.exists(), reason="no /usr/bin/chromium"),
-    ]
+from server.browser_paths import WEB_ROOT as DIST
 
 
 class _QuietHandler(http.server.SimpleHTTPRequestHandler):
@@ -49,14 +33,3 @@ def web_root() -> Iterator[str]:
     finally:
         httpd.shutdown()
         httpd.server_close()
-
-
-@pytest.fixture(scope="module")
-def browser() -> Iterator[Any]:
-    sync_api = pytest.importorskip("playwright.sync_api")
-    with sync_api.sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=str(CHROMIUM), args=list(CHROMIUM_ARGS))
-        try:
-            yield browser
-        finally:
-            browser.close()

@@ -11,9 +11,10 @@ import socket
 from collections.abc import Iterator
 from typing import Any
 
-from tests.browser.conftest import DIST, needs
+from tests.browser.conftest import DIST
+from tests.chromium import browser_marks
 
-pytestmark = needs(DIST / "index.html")
+pytestmark = browser_marks(DIST / "index.html")
 
 
 def _closed_port_url() -> str:

@@ -16,9 +16,10 @@ from typing import Any
 
 import pytest
 
-from tests.browser.conftest import DIST, needs
+from tests.browser.conftest import DIST
+from tests.chromium import browser_marks
 
-pytestmark = needs(DIST / "test" / "loopback.html")
+pytestmark = browser_marks(DIST / "test" / "loopback.html")
 
 PRESENTED_AT_LEAST = "n => window.upcast && window.upcast.stats().framesPresented >= n"
 

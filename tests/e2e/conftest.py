@@ -22,8 +22,10 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
-from server.bench.latency import CHROMIUM, CHROMIUM_ARGS, WEB_ROOT, LiveStack
+from server.bench.latency import LiveStack
+from server.browser_paths import WEB_ROOT
 from server.stack import SessionConfig
+from tests.chromium import browser_marks
 
 RENDER = "320x180"
 DISPLAY = "640x360"
@@ -37,14 +39,7 @@ Thumb = npt.NDArray[np.float32]
 
 def needs(page: str) -> list[pytest.MarkDecorator]:
     """Marks for an e2e module that loads ``page`` from the built client."""
-    return [
-        pytest.mark.slow,
-        pytest.mark.skipif(
-            not (WEB_ROOT / page).exists(),
-            reason=f"client_web/dist/{page} missing: run `npm ci && npm run build` in client_web",
-        ),
-        pytest.mark.skipif(not CHROMIUM.exists(), reason="no /usr/bin/chromium"),
-    ]
+    return browser_marks(WEB_ROOT / page)
 
 
 def thumbnail(rgb: npt.NDArray[Any]) -> Thumb:
@@ -121,19 +116,6 @@ def start_live(scene: str, *, fps: float = FPS) -> Iterator[Live]:
     with LiveStack(config, frame_tap=tap) as stack:
         yield Live(stack, tap)
         stack.check()
-
-
-# Module scope, not session: Playwright's sync API keeps an event loop running in
-# the main thread while it is open, and later modules call asyncio.run().
-@pytest.fixture(scope="module")
-def browser() -> Iterator[Any]:
-    sync_api = pytest.importorskip("playwright.sync_api")
-    with sync_api.sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=str(CHROMIUM), args=list(CHROMIUM_ARGS))
-        try:
-            yield browser
-        finally:
-            browser.close()
 
 
 def open_player(browser: Any, url: str, *, frames: int = 5, timeout_s: float = 30.0) -> Any:
