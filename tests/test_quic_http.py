@@ -111,3 +111,33 @@ def test_traversal_and_abuse_refused(tmp_path: Path) -> None:
         slow.close()
 
     with_http(tmp_path, body)
+
+
+def test_shutdown_with_open_connections_logs_no_error(caplog: object) -> None:
+    """A process that ends with keep-alive connections open (a browser tab still on
+    the page) cancels their handlers, in the read or in the close: no traceback."""
+    import logging
+
+    import pytest
+
+    assert isinstance(caplog, pytest.LogCaptureFixture)
+
+    async def main() -> None:
+        server = await serve_http(HttpSide("ab" * 32), host="127.0.0.1", port=0)
+        port = server.sockets[0].getsockname()[1]
+        writers = []
+        for _ in range(3):
+            reader, writer = await asyncio.open_connection("127.0.0.1", port)
+            writer.write(b"GET /healthz HTTP/1.1\r\nHost: x\r\n\r\n")
+            await writer.drain()
+            assert (await reader.readline()).startswith(b"HTTP/1.1 200")
+            writers.append(writer)
+        writers[0].close()  # one handler is closing its side when the cancel comes
+        server.close()
+        # Returning now leaves the handlers waiting: the loop's run cancels them.
+
+    import uvloop  # the relay's loop, where the traceback showed
+
+    with caplog.at_level(logging.ERROR):
+        uvloop.run(main())
+    assert not [r for r in caplog.records if r.levelno >= logging.ERROR], caplog.text

@@ -118,17 +118,22 @@ class HttpSide:
         self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter
     ) -> None:
         try:
+            await self._serve_connection(reader, writer)
+        except asyncio.CancelledError:
+            # Server shutdown with a connection open, wherever the handler was (reading
+            # or closing): end quietly. Python 3.11's stream protocol logs a traceback
+            # for a handler task that ends cancelled, so this one returns normally.
+            writer.close()
+
+    async def _serve_connection(
+        self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter
+    ) -> None:
+        try:
             for _ in range(MAX_REQUESTS_PER_CONNECTION):
                 if not await self._one_request(reader, writer):
                     break
         except (ConnectionError, TimeoutError, asyncio.IncompleteReadError):
             pass  # client went away or was too slow: just drop the connection
-        except asyncio.CancelledError:
-            # Server shutdown with a keep-alive connection idle: end quietly. (Python
-            # 3.11's stream protocol logs a traceback for a handler task that ends
-            # cancelled, so this one returns normally instead.)
-            writer.close()
-            return
         except Exception:
             log.exception("HTTP connection failed")
         finally:
