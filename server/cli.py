@@ -8,6 +8,8 @@ import logging
 import sys
 from collections.abc import Callable, Sequence
 
+from server.logging_setup import ENV_VAR, LOG_FORMATS, configure_logging, default_log_format
+
 # name -> module under server.commands; each module has add_arguments(parser) and run(args).
 # Imported lazily so `upcast --help` does not pay for torch.
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -37,6 +39,12 @@ def build_parser(selected: str | None = None) -> argparse.ArgumentParser:
         description="upcast: cloud-gaming streaming server with a decoupled upscaler worker",
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    parser.add_argument(
+        "--log-format",
+        choices=LOG_FORMATS,
+        default=None,
+        help=f"text or json (one object per line); default: ${ENV_VAR} or text",
+    )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name, (module, help_text) in COMMANDS.items():
         p = sub.add_parser(name, help=help_text, description=help_text)
@@ -47,9 +55,18 @@ def build_parser(selected: str | None = None) -> argparse.ArgumentParser:
     return parser
 
 
+# Global options that take a value: their value is not the command name.
+_GLOBAL_WITH_VALUE = frozenset({"--log-format"})
+
+
 def _selected_command(argv: Sequence[str]) -> str | None:
+    skip_next = False
     for arg in argv:
-        if not arg.startswith("-"):
+        if skip_next:
+            skip_next = False
+        elif arg in _GLOBAL_WITH_VALUE:
+            skip_next = True
+        elif not arg.startswith("-"):
             return arg if arg in COMMANDS else None
     return None
 
@@ -58,10 +75,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser(_selected_command(argv))
     args = parser.parse_args(argv)
-    logging.basicConfig(
-        level=logging.DEBUG if args.verbose else logging.INFO,
-        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-    )
+    try:
+        log_format = args.log_format or default_log_format()
+    except ValueError as exc:
+        parser.error(str(exc))
+    configure_logging(logging.DEBUG if args.verbose else logging.INFO, log_format)
     if not args.verbose:
         # aioquic logs every handshake at INFO; our own loggers say what matters.
         logging.getLogger("quic").setLevel(logging.WARNING)

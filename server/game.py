@@ -12,6 +12,7 @@ import logging
 import queue
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -46,6 +47,7 @@ class GameStats:
     late_frames: int = 0
     ring_timeouts: int = 0
     render_errors: int = 0
+    inputs_applied: int = 0
 
 
 class GameLoop:
@@ -70,6 +72,8 @@ class GameLoop:
         self.display_size = display_size
         self._wanted_scale: float | None = None
         self._wanted_jitter: bool | None = None
+        # Seconds per render, for the --metrics-port histogram (server/metrics_process.py).
+        self.on_render_time: Callable[[float], None] | None = None
         ring.attach_as_producer()
 
     def push_input(self, event: Any, seq: int = 0) -> None:
@@ -111,6 +115,7 @@ class GameLoop:
                 return
             self.renderer.apply_input(event)
             self.input_seq = max(self.input_seq, seq)
+            self.stats.inputs_applied += 1
 
     def step(self, frame_index: int) -> bool:
         """Render one frame into ring R. False if no slot came in time (frame dropped)."""
@@ -136,6 +141,9 @@ class GameLoop:
             meta.input_seq = self.input_seq
             meta.stamps[Stage.RENDER_START] = render_start
             stamp(meta.stamps, Stage.RENDER_END)
+            if self.on_render_time is not None:
+                render_ns = meta.stamps[Stage.RENDER_END, 0] - render_start[0]
+                self.on_render_time(float(render_ns) / 1e9)
             write_meta(lease.header, meta)
             lease.commit(stamp_stage=Stage.RING_R_READY)
         self.stats.frames += 1

@@ -12,6 +12,7 @@ import logging
 import signal
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -22,6 +23,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from server.config_types import SizeText, UpscalerName
 from server.control import ControlServer, GetStatus, SetUpscaler, parse_message
 from server.frame import Size
+from server.metrics_process import serve_metrics, worker_registry
 from server.ring import FrameRing
 from server.ring_frames import attach_display_ring, attach_render_ring, render_frame_of, write_meta
 from server.timing import Stage, stamp
@@ -44,6 +46,9 @@ class WorkerConfig(BaseModel):
     threads: int = Field(default=1, ge=1, le=256, description="torch CPU threads")
     attach_timeout_s: float = Field(default=10.0, ge=0, description="wait for the rings")
     newest: bool = Field(default=False, description="skip to the newest frame when behind")
+    metrics_port: int = Field(
+        default=0, ge=0, le=65535, description="Prometheus /metrics TCP port (0: off)"
+    )
 
 
 @dataclass
@@ -52,6 +57,8 @@ class WorkerStats:
     errors: int = 0
     output_drops: int = 0
     switches: int = 0
+    control_messages: int = 0
+    control_refused: int = 0
 
 
 class UpscaleWorker:
@@ -71,6 +78,8 @@ class UpscaleWorker:
         self.host = host
         self.newest = newest
         self.stats = WorkerStats()
+        # Seconds per upscale, for the --metrics-port histogram (server/metrics_process.py).
+        self.on_upscale_time: Callable[[float], None] | None = None
         ring_in.attach_as_consumer()
         ring_out.attach_as_producer()
 
@@ -101,6 +110,9 @@ class UpscaleWorker:
             views = out.views(size.width, size.height)
             quantize_into(result, views["color"])
             stamp(meta.stamps, Stage.UPSCALE_END)
+            if self.on_upscale_time is not None:
+                upscale_ns = meta.stamps[Stage.UPSCALE_END, 0] - meta.stamps[Stage.UPSCALE_START, 0]
+                self.on_upscale_time(float(upscale_ns) / 1e9)
             write_meta(out.header, meta)
             out.commit(stamp_stage=Stage.RING_U_READY)
         self.stats.frames += 1
@@ -108,6 +120,7 @@ class UpscaleWorker:
 
     def handle_control(self, server: ControlServer) -> None:
         for data, addr in server.poll():
+            self.stats.control_messages += 1
             try:
                 message = parse_message(data)
                 if isinstance(message, SetUpscaler):
@@ -117,6 +130,7 @@ class UpscaleWorker:
                 elif isinstance(message, GetStatus):
                     server.reply(addr, {"ok": True, **self.status()})
             except ValueError as exc:
+                self.stats.control_refused += 1
                 log.warning("control message refused: %s", exc)
                 server.reply(addr, {"ok": False, "error": str(exc)})
 
@@ -155,6 +169,7 @@ def run_worker(config: WorkerConfig, stop: threading.Event | None = None) -> int
     ring_out = attach_display_ring(config.ring_out, wait_s=config.attach_timeout_s)
     host = UpscalerHost(config.upscaler, Size.parse(config.display_size))
     worker = UpscaleWorker(ring_in, ring_out, host, newest=config.newest)
+    serve_metrics(worker_registry(worker), config.metrics_port, "worker")
     control = ControlServer(config.control_path) if config.control_path else None
     log.info(
         "worker up: %s -> %s (%s, %s), control %s",

@@ -27,6 +27,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=True,
         help="sub-pixel camera jitter (Halton 2,3) for temporal upscalers (default: on)",
     )
+    parser.add_argument(
+        "--metrics-port", type=_port, default=0, help="Prometheus /metrics TCP port (0: off)"
+    )
+
+
+def _port(text: str) -> int:
+    port = int(text)
+    if not 0 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"must be in 0..65535, got {port}")
+    return port
 
 
 def run(args: argparse.Namespace) -> int:
@@ -35,6 +45,7 @@ def run(args: argparse.Namespace) -> int:
     from server.frame import Size
     from server.game import GameLoop
     from server.game_input import InputReceiver
+    from server.metrics_process import game_registry, serve_metrics
     from server.render.renderer import Renderer
     from server.ring_frames import attach_render_ring
 
@@ -48,6 +59,7 @@ def run(args: argparse.Namespace) -> int:
     ring = attach_render_ring(args.ring, wait_s=10)
     display = Size.parse(args.size).scaled(args.scale)
     loop = GameLoop(renderer, ring, args.fps, display_size=display)
+    serve_metrics(game_registry(loop), args.metrics_port, "game")
     receiver = (
         InputReceiver(
             args.input, loop.push_input, on_scale=loop.request_scale, on_jitter=loop.request_jitter

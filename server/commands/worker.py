@@ -17,6 +17,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--control", type=Path, default=None, help="Unix control socket path")
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     parser.add_argument("--newest", action="store_true", help="skip to the newest frame")
+    parser.add_argument(
+        "--metrics-port", type=int, default=0, help="Prometheus /metrics TCP port (0: off)"
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -33,6 +36,7 @@ def run(args: argparse.Namespace) -> int:
             control_path=args.control,
             threads=args.threads,
             newest=args.newest,
+            metrics_port=args.metrics_port,
         )
     except ValidationError as exc:
         print(format_validation_error("worker", exc), file=sys.stderr)

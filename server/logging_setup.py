@@ -1,0 +1,72 @@
+"""Log output for every upcast process: human text or one JSON object per line.
+
+JSON lines are what log shippers (Loki, Vector, CloudWatch, ``docker logs``
+pipelines) parse without a regex: each line has ``ts`` (RFC 3339, UTC, ms),
+``level``, ``logger``, ``msg``, ``process`` (name) and ``pid``; fields a caller
+passes with ``log.info(..., extra={"broadcast": "game-1"})`` appear under
+``extra``, and an exception under ``exc``.
+
+The format comes from ``--log-format`` or else ``UPCAST_LOG_FORMAT``; the CLI
+writes the choice back into the environment so the game and worker processes a
+command starts log the same way.
+"""
+
+from __future__ import annotations
+
+import datetime
+import json
+import logging
+import os
+from collections.abc import Mapping
+from typing import Any
+
+LOG_FORMATS = ("text", "json")
+ENV_VAR = "UPCAST_LOG_FORMAT"
+TEXT_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
+
+# Attributes every LogRecord has; anything else on a record came from `extra=`.
+_STANDARD = frozenset(logging.makeLogRecord({}).__dict__) | {"message", "asctime"}
+
+
+class JsonLineFormatter(logging.Formatter):
+    def format(self, record: logging.LogRecord) -> str:
+        entry: dict[str, Any] = {
+            "ts": datetime.datetime.fromtimestamp(record.created, datetime.UTC).isoformat(
+                timespec="milliseconds"
+            ),
+            "level": record.levelname,
+            "logger": record.name,
+            "msg": record.getMessage(),
+            "process": record.processName,
+            "pid": record.process,
+        }
+        extra = {k: v for k, v in record.__dict__.items() if k not in _STANDARD}
+        if extra:
+            entry["extra"] = extra
+        if record.exc_info:
+            entry["exc"] = self.formatException(record.exc_info)
+        elif record.stack_info:
+            entry["stack"] = record.stack_info
+        # default=repr: an odd extra value must never cost the log line.
+        return json.dumps(entry, default=repr, ensure_ascii=False)
+
+
+def default_log_format(environ: Mapping[str, str] = os.environ) -> str:
+    """``UPCAST_LOG_FORMAT`` or "text"; ValueError naming the variable if unknown."""
+    value = environ.get(ENV_VAR, "text").strip().lower() or "text"
+    if value not in LOG_FORMATS:
+        raise ValueError(f"{ENV_VAR} must be one of {', '.join(LOG_FORMATS)}, got {value!r}")
+    return value
+
+
+def configure_logging(level: int, log_format: str) -> None:
+    """One stderr handler in ``log_format`` on the root logger, and the choice in
+    the environment for child processes. Like ``logging.basicConfig`` it leaves a
+    root logger that already has handlers alone (pytest's capture, an embedding app)."""
+    if log_format not in LOG_FORMATS:
+        raise ValueError(f"log format must be one of {', '.join(LOG_FORMATS)}, got {log_format!r}")
+    handler = logging.StreamHandler()
+    formatter = JsonLineFormatter() if log_format == "json" else logging.Formatter(TEXT_FORMAT)
+    handler.setFormatter(formatter)
+    logging.basicConfig(level=level, handlers=[handler])
+    os.environ[ENV_VAR] = log_format
