@@ -112,8 +112,15 @@ class MoqLink:
                 self.wt.stop_sending(t.stream_id, t.error_code)
             elif isinstance(t, CloseSession):
                 # A clean close (code 0) is routine; a protocol error is worth a warning.
+                # UNAUTHORIZED was logged, rate-limited, by whoever refused: a flood of
+                # refused sessions must not write one line each here.
+                level = logging.WARNING
+                if t.error_code == 0:
+                    level = logging.INFO
+                elif t.error_code == ErrorCode.UNAUTHORIZED:
+                    level = logging.DEBUG
                 log.log(
-                    logging.INFO if t.error_code == 0 else logging.WARNING,
+                    level,
                     "moq session %s closed: %s (code %d)",
                     self.remote,
                     t.reason,

@@ -157,6 +157,11 @@ class Relay:
         assert self._endpoints is not None, "relay not started"
         return self._endpoints.port
 
+    @property
+    def quic_connections(self) -> int:
+        """QUIC connections the server holds state for (refused and draining included)."""
+        return 0 if self._endpoints is None else self._endpoints.wt.connection_count()
+
     async def start(self) -> None:
         routes = {"/metrics": self._metrics_route, "/stats": self._stats_route}
         self._endpoints = await serve(
