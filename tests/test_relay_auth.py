@@ -208,7 +208,7 @@ def test_upload_over_the_viewer_rate_closes_that_session(cert: CertBundle, key: 
         async with running_relay(cert, authorizer=Authorizer(key), ingress=limits) as relay:
             publisher = Publisher()
             await publisher.start(relay.port, cert, session_tokens(key, "game").publisher)
-            publisher.moq_link.moq.request_announces("p" * 8000)  # 8 KB: over its bucket too?
+            publisher.moq_link.moq.request_announces("p" * 8000)  # the same 8 KB, within its bound
             publisher.moq_link.flush()
             viewer = Viewer()
             await viewer.connect(relay.port, cert)
