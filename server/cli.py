@@ -23,6 +23,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "relay": ("relay", "run the moq-lite relay: publishers in, browsers and viewers out"),
     "session": ("session", "stream an existing game session's ring U to a relay"),
     "loadtest": ("loadtest", "many moq-lite viewers against a relay: fps, loss, latency, CPU"),
+    "token": ("token", "make the relay's key file (generate) and tokens signed with it (sign)"),
 }
 
 

@@ -11,10 +11,13 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import time
 from collections.abc import Callable
+from urllib.parse import parse_qsl, urlencode, urlsplit, urlunsplit
 
+from server.moq.errors import ErrorCode
 from server.moq.events import Event
-from server.moq.limits import MoqLimits
+from server.moq.limits import MoqLimits, TokenBucket
 from server.moq.session import MoqSession
 from server.moq.transmit import CloseSession, ResetStream, SendData, StopSending
 from server.quic.client import connect
@@ -39,9 +42,12 @@ class MoqLink:
         on_closed: Callable[[MoqLink, str], None] | None = None,
         limits: MoqLimits | None = None,
         after_input: Callable[[MoqLink], None] | None = None,
+        ingress: TokenBucket | None = None,
     ) -> None:
         """``after_input`` replaces the default ``pump`` after received bytes: the
-        relay drives many links from one RelayCore, which takes the events itself."""
+        relay drives many links from one RelayCore, which takes the events itself.
+        ``ingress`` bounds the bytes per second the peer may send: past it the session
+        is closed (LIMIT_EXCEEDED) before the bytes are parsed."""
         self.wt = wt
         self.request = request
         self.moq = MoqSession(is_client=wt.is_client, open_stream=wt.open_stream, limits=limits)
@@ -50,6 +56,7 @@ class MoqLink:
         self.closed_reason: str | None = None
         self._closed = asyncio.Event()
         self._after_input = after_input or MoqLink.pump
+        self._ingress = ingress
 
     @property
     def closed(self) -> bool:
@@ -63,6 +70,11 @@ class MoqLink:
     # -- WtSessionHandler ------------------------------------------------------
 
     def on_stream_data(self, stream_id: int, data: bytes, end_stream: bool) -> None:
+        if self._ingress is not None and not self._ingress.take(len(data), time.monotonic()):
+            if not self.moq.closed:
+                log.warning("moq session %s: receive rate over its limit; closing", self.remote)
+                self.close(ErrorCode.LIMIT_EXCEEDED, "receive rate over limit")
+            return
         self.moq.receive(stream_id, data, end_stream)
         self._after_input(self)
 
@@ -100,8 +112,15 @@ class MoqLink:
                 self.wt.stop_sending(t.stream_id, t.error_code)
             elif isinstance(t, CloseSession):
                 # A clean close (code 0) is routine; a protocol error is worth a warning.
+                # UNAUTHORIZED was logged, rate-limited, by whoever refused: a flood of
+                # refused sessions must not write one line each here.
+                level = logging.WARNING
+                if t.error_code == 0:
+                    level = logging.INFO
+                elif t.error_code == ErrorCode.UNAUTHORIZED:
+                    level = logging.DEBUG
                 log.log(
-                    logging.INFO if t.error_code == 0 else logging.WARNING,
+                    level,
                     "moq session %s closed: %s (code %d)",
                     self.remote,
                     t.reason,
@@ -128,12 +147,16 @@ async def connect_moq(
     verify: bool = True,
     limits: MoqLimits | None = None,
     timeout: float = 10.0,
+    token: str | None = None,
 ) -> MoqLink:
     """Open a moq-lite-03 session to a relay over WebTransport.
 
     An ``http://`` URL fetches the relay's certificate hash from the same port
-    over TCP and pins it, as the browser player does.
+    over TCP and pins it, as the browser player does. ``token`` (a JWT) is added to
+    the URL as ``?jwt=``, where moq-relay and our relay read it.
     """
+    if token is not None:
+        url = with_token(url, token)
     links: list[MoqLink] = []
 
     def factory(wt: WtSession, request: WtRequest) -> MoqLink:
@@ -149,3 +172,11 @@ async def connect_moq(
         timeout=timeout,
     )
     return links[0]
+
+
+def with_token(url: str, token: str) -> str:
+    """``url`` with ``jwt=<token>`` in its query (replacing one already there)."""
+    parts = urlsplit(url)
+    query = [(k, v) for k, v in parse_qsl(parts.query, keep_blank_values=True) if k != "jwt"]
+    query.append(("jwt", token))
+    return urlunsplit(parts._replace(query=urlencode(query)))

@@ -28,14 +28,16 @@ from prometheus_client import (
 )
 from prometheus_client.process_collector import ProcessCollector
 
+from server.auth import Authorizer, Grant
 from server.monitor import FrameRateMonitor
-from server.moq.limits import MoqLimits
+from server.moq.limits import IngressLimits, MoqLimits, TokenBucket
 from server.moq.relay_core import ConnId, ConnStats, RelayCore
 from server.moq_link import MoqLink
 from server.quic.certs import CertBundle
 from server.quic.endpoints import Endpoints, serve
 from server.quic.http_side import HttpRequest, Response
-from server.quic.session import WtRequest, WtSession
+from server.quic.refusals import RefusalLog
+from server.quic.session import Refusal, WtRequest, WtSession
 
 log = logging.getLogger(__name__)
 
@@ -56,6 +58,21 @@ class RelayConfig:
     default_max_latency_ms: int = 500
     max_connections: int = 1000
     limits: MoqLimits = field(default_factory=MoqLimits)
+    ingress: IngressLimits = field(default_factory=IngressLimits)
+    # Library default: open (tests, benchmarks). `upcast relay` makes the choice
+    # explicit: --auth-key or --no-auth.
+    authorizer: Authorizer = field(default_factory=Authorizer.open_relay)
+
+
+def refusal_label(refusal: Refusal) -> str:
+    """A Prometheus label with few values: the reason's kind, never its details."""
+    if refusal.status == 403:
+        return "forbidden_path"
+    if refusal.reason == "missing token":
+        return "missing_token"
+    if refusal.reason.endswith("expired"):
+        return "expired_token"
+    return "invalid_token"
 
 
 class RelayMetrics:
@@ -64,6 +81,18 @@ class RelayMetrics:
         self.accepted = Counter("upcast_relay_sessions", "Sessions accepted", registry=registry)
         self.refused = Counter(
             "upcast_relay_sessions_refused", "Sessions refused (limit)", registry=registry
+        )
+        self.unauthorized = Counter(
+            "upcast_relay_sessions_unauthorized",
+            "Sessions refused or closed for lack of rights (missing/invalid token, a"
+            " publish outside the token's put)",
+            ["reason"],
+            registry=registry,
+        )
+        self.requests_denied = Counter(
+            "upcast_relay_requests_unauthorized",
+            "Subscribe requests refused by the token's get",
+            registry=registry,
         )
         self.frames_in = Counter(
             "upcast_relay_frames_in", "Frames from publishers", registry=registry
@@ -103,7 +132,11 @@ class Relay:
             max_backlog_bytes=config.max_backlog_bytes,
             default_max_latency_s=config.default_max_latency_ms / 1000 or None,
             on_frame=self._on_frame,
+            on_denied=self._on_denied,
         )
+        # In-session denials (a publish or subscribe outside the token) share one
+        # rate-limited log, as refused CONNECTs do in the QUIC server.
+        self.denial_log = RefusalLog(what="moq request")
         # One monitor per broadcast's video track: its fps and jitter as the relay
         # receives it, and the time to fan each frame out ("relay" stage).
         self.monitors: dict[str, FrameRateMonitor] = {}
@@ -124,6 +157,11 @@ class Relay:
         assert self._endpoints is not None, "relay not started"
         return self._endpoints.port
 
+    @property
+    def quic_connections(self) -> int:
+        """QUIC connections the server holds state for (refused and draining included)."""
+        return 0 if self._endpoints is None else self._endpoints.wt.connection_count()
+
     async def start(self) -> None:
         routes = {"/metrics": self._metrics_route, "/stats": self._stats_route}
         self._endpoints = await serve(
@@ -133,6 +171,7 @@ class Relay:
             port=self.config.port,
             web_root=self.config.web_root,
             routes=routes,
+            authorize=self._authorize,
         )
         self._tasks.append(asyncio.create_task(self._poll_loop(), name="relay-poll"))
         self._tasks.append(asyncio.create_task(self._stats_loop(), name="relay-stats"))
@@ -150,14 +189,41 @@ class Relay:
 
     # -- connections --------------------------------------------------------------
 
+    def _authorize(self, path: str, headers: dict[str, str]) -> Grant | Refusal:
+        """Runs in the QUIC server before the CONNECT is answered (and logged there)."""
+        decision = self.config.authorizer.authorize(path, headers)
+        if isinstance(decision, Refusal):
+            self.metrics.unauthorized.labels(refusal_label(decision)).inc()
+        return decision
+
+    def _on_denied(self, conn_id: ConnId, action: str, path: str) -> None:
+        link = self.links.get(conn_id)  # type: ignore[call-overload]
+        remote = link.remote if link is not None else "?"
+        self.denial_log.refused(remote, 403, f"{action} {path[:200]!r} not allowed by token")
+        if action == "publish":
+            self.metrics.unauthorized.labels(f"{action}_denied").inc()
+        else:
+            self.metrics.requests_denied.inc()
+
+    def _ingress_bucket(self, grant: Grant) -> TokenBucket:
+        limits = self.config.ingress
+        if grant.publishes:
+            rate, burst = limits.publisher_bytes_per_s, limits.publisher_burst_bytes
+        else:
+            rate, burst = limits.viewer_bytes_per_s, limits.viewer_burst_bytes
+        return TokenBucket(rate, burst, time.monotonic())
+
     def _accept(self, wt: WtSession, request: WtRequest) -> MoqLink:
         conn_id = next(self._ids)
+        # No grant only when the server runs without the hook (never from start()).
+        grant = request.grant if isinstance(request.grant, Grant) else Grant.everything()
         link = MoqLink(
             wt,
             request,
             on_closed=lambda link, reason: self._closed(conn_id, reason),
             limits=self.config.limits,
             after_input=lambda link: self._handle(conn_id),
+            ingress=self._ingress_bucket(grant),
         )
         if len(self.links) >= self.config.max_connections:
             self.metrics.refused.inc()
@@ -167,8 +233,15 @@ class Relay:
         self.links[conn_id] = link
         self.metrics.accepted.inc()
         self.metrics.connections.set(len(self.links))
-        log.info("relay: session %d from %s (%s)", conn_id, link.remote, request.path)
-        self._flush(self.core.add_connection(conn_id, link.moq))
+        # The path without its query: the token is a secret and stays out of logs.
+        log.info(
+            "relay: session %d from %s (%s, %s)",
+            conn_id,
+            link.remote,
+            request.path.split("?", 1)[0],
+            grant.who,
+        )
+        self._flush(self.core.add_connection(conn_id, link.moq, grant))
         stats = self.core.stats(conn_id)
         if stats is not None:
             self._conn_stats[conn_id] = stats

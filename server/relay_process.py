@@ -26,10 +26,22 @@ class RelayEndpoint:
 
 
 class RelayProcess:
-    def __init__(self, host: str, port: int, web_root: Path | None = None) -> None:
+    def __init__(
+        self,
+        host: str,
+        port: int,
+        web_root: Path | None = None,
+        *,
+        auth_key: Path | None = None,
+        public_viewers: bool = True,
+    ) -> None:
+        """Without ``auth_key`` the relay runs with ``--no-auth`` (benchmarks on
+        loopback); ``upcast up`` always passes one."""
         self.host = host
         self.port = port
         self.web_root = web_root
+        self.auth_key = auth_key
+        self.public_viewers = public_viewers
         self.proc: subprocess.Popen[bytes] | None = None
         self.endpoint: RelayEndpoint | None = None
         self.restarts = 0
@@ -43,6 +55,11 @@ class RelayProcess:
         args += ["--port", str(port), "--ready-file", str(ready)]
         if self.web_root is not None:
             args += ["--web-root", str(self.web_root)]
+        if self.auth_key is None:
+            args.append("--no-auth")
+        else:
+            args += ["--auth-key", str(self.auth_key)]
+            args.append("--public-viewers" if self.public_viewers else "--no-public-viewers")
         self.proc = subprocess.Popen(args)
         deadline = time.monotonic() + timeout_s
         while True:

@@ -19,6 +19,7 @@ from contextlib import asynccontextmanager
 from dataclasses import dataclass
 from typing import Any
 
+from server.auth import Authorizer
 from server.moq import events as ev
 from server.moq.errors import ErrorCode
 from server.moq.events import Event
@@ -53,6 +54,9 @@ class Received:
 
 @asynccontextmanager
 async def running_relay(cert: CertBundle, **config: Any) -> AsyncIterator[Relay]:
+    """A relay on port 0; open (the `--no-auth` relay) unless `authorizer` is given:
+    these tests are about fan-out, test_relay_auth.py about tokens."""
+    config.setdefault("authorizer", Authorizer.open_relay())
     relay = Relay(RelayConfig(host="::", port=0, **config), cert)
     await relay.start()
     try:
@@ -69,12 +73,13 @@ class Peer:
         self.events: list[Event] = []
         self.changed = asyncio.Event()
 
-    async def connect(self, port: int, cert: CertBundle) -> None:
+    async def connect(self, port: int, cert: CertBundle, token: str | None = None) -> None:
         self.link = await connect_moq(
             f"https://localhost:{port}/",
             on_events=self._on_events,
             on_closed=lambda link, reason: self.changed.set(),
             cert_hash_hex=cert.sha256_hex,
+            token=token,
         )
 
     @property
@@ -149,8 +154,8 @@ class Publisher(Peer):
         self.number = 0
         self.current: list[bytes] = []  # frames of the current group so far
 
-    async def start(self, port: int, cert: CertBundle) -> None:
-        await self.connect(port, cert)
+    async def start(self, port: int, cert: CertBundle, token: str | None = None) -> None:
+        await self.connect(port, cert, token)
         self.moq_link.moq.publish(self.broadcast)
         self.moq_link.flush()
 

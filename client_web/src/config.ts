@@ -10,6 +10,12 @@ export interface Config {
 	broadcast: string;
 	/** Whether the stats overlay starts visible. */
 	overlay: boolean;
+	/**
+	 * The page's `jwt` (a relay token), also put on `url` as `?jwt=`: browsers cannot set
+	 * WebTransport headers, so the token rides in the URL (as with moq-relay). Without one
+	 * the page watches as an anonymous viewer and sends no inputs.
+	 */
+	token: string | null;
 }
 
 export function readConfig(location: Location = window.location): Config {
@@ -19,9 +25,13 @@ export function readConfig(location: Location = window.location): Config {
 	const hostPart = host.includes(":") && !host.startsWith("[") ? `[${host}]` : host;
 	const port = query.get("port") ?? (location.protocol.startsWith("http") && location.port ? location.port : "4443");
 	const relay = query.get("url") ?? query.get("relay") ?? `http://${hostPart}:${port}/`;
+	const url = new URL(relay, location.href);
+	const token = query.get("jwt") || null;
+	if (token) url.searchParams.set("jwt", token);
 	return {
-		url: new URL(relay, location.href),
+		url,
 		broadcast: query.get("broadcast") ?? query.get("name") ?? "game",
 		overlay: query.get("overlay") !== "0",
+		token,
 	};
 }

@@ -109,9 +109,22 @@ function main(): void {
 	});
 
 	const publisher = new InputPublisher(config.broadcast);
-	const capture = new InputCapture(canvas, publisher);
-	capture.onPress = (seq, sentMs) => inputToPhoton.press(seq, sentMs);
-	const controls = mountControls(document.getElementById("controls") as HTMLElement, publisher);
+	// Publishing inputs needs a token (put on `<broadcast>/input`); without one the relay
+	// would close the whole session on the announce, so a tokenless page only watches.
+	const viewOnly = config.token === null;
+	const controlsRoot = document.getElementById("controls") as HTMLElement;
+	const controls = mountControls(controlsRoot, publisher);
+	if (viewOnly) {
+		for (const control of controlsRoot.querySelectorAll<HTMLSelectElement | HTMLButtonElement>("select, button")) {
+			control.disabled = true;
+		}
+		const hint = document.querySelector(".hint");
+		if (hint) hint.textContent = "view only: inputs are off (no token in the page URL)";
+		console.info("upcast: no token: view only, inputs off");
+	} else {
+		const capture = new InputCapture(canvas, publisher);
+		capture.onPress = (seq, sentMs) => inputToPhoton.press(seq, sentMs);
+	}
 
 	const stats = (): Stats => ({
 		...state,
@@ -140,6 +153,7 @@ function main(): void {
 	(window as unknown as { upcast: unknown }).upcast = {
 		config,
 		stats,
+		viewOnly,
 		/** What the canvas shows right now and which server frame it is (same task). */
 		snapshot: () => ({
 			frameId: state.lastPresentedFrameId ?? null,
@@ -163,7 +177,7 @@ function main(): void {
 		status: setStatus,
 		run: async (connection, closed) => {
 			state.version = connection.version;
-			publisher.attach(connection);
+			if (!viewOnly) publisher.attach(connection);
 			try {
 				await follow(connection, closed);
 			} finally {

@@ -60,11 +60,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="step the viewer count up to --viewers; report the largest count that holds",
     )
     parser.add_argument("--quiet", action="store_true", help="no progress line")
+    parser.add_argument(
+        "--token",
+        default=None,
+        help="the viewers' relay token (default: none, for a relay with public viewers)",
+    )
     group = parser.add_argument_group("synthetic publisher (instead of a game session)")
     group.add_argument(
         "--synthetic-publisher",
         action="store_true",
         help="start python -m server.loadtest.synthetic on the relay for the run",
+    )
+    group.add_argument(
+        "--publisher-token", default=None, help="the synthetic publisher's relay token"
     )
     group.add_argument("--size", default="1280x720", help="synthetic frame size")
     group.add_argument("--fps", type=float, default=30.0, help="synthetic frames per second")
@@ -88,6 +96,7 @@ def config_from(args: argparse.Namespace) -> LoadConfig:
         min_fps=args.min_fps,
         max_p95_ms=args.max_p95_ms,
         cert_hash_hex=args.cert_hash,
+        token=args.token,
     )
 
 
@@ -99,6 +108,8 @@ def _synthetic_argv(args: argparse.Namespace, duration_s: float) -> list[str]:
         argv += ["--bitrate-kbps", str(args.bitrate_kbps)]
     if args.cert_hash is not None:
         argv += ["--cert-hash", args.cert_hash]
+    if args.publisher_token is not None:
+        argv += ["--token", args.publisher_token]
     return argv
 
 

@@ -13,8 +13,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from server.browser_paths import WEB_ROOT
+from server.moq.limits import IngressLimits
 
 if TYPE_CHECKING:
+    from server.auth import Authorizer
     from server.quic.certs import CertBundle
 
 log = logging.getLogger(__name__)
@@ -49,6 +51,36 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         " (0 = only the backlog limit)",
     )
     parser.add_argument("--max-sessions", type=int, default=1000, help="sessions at once")
+    parser.add_argument(
+        "--auth-key",
+        type=Path,
+        default=None,
+        help="key file (JWK) that publish/subscribe tokens are verified with"
+        " (make one: upcast token generate --key PATH)",
+    )
+    parser.add_argument(
+        "--public-viewers",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="sessions without a token may watch (never publish or send inputs)",
+    )
+    parser.add_argument(
+        "--no-auth",
+        action="store_true",
+        help="open relay for local development: anyone may publish (logs a warning)",
+    )
+    parser.add_argument(
+        "--viewer-upload-kib-s",
+        type=int,
+        default=IngressLimits().viewer_bytes_per_s // 1024,
+        help="bytes/s a session without publish rights may send before it is closed (KiB)",
+    )
+    parser.add_argument(
+        "--publisher-upload-mib-s",
+        type=int,
+        default=IngressLimits().publisher_bytes_per_s // (1024 * 1024),
+        help="bytes/s a publishing session may send before it is closed (MiB)",
+    )
     parser.add_argument("--duration", type=float, default=None, help="stop after SECONDS")
     parser.add_argument("--ready-file", type=Path, default=None, help=argparse.SUPPRESS)
 
@@ -64,6 +96,18 @@ def _problem(args: argparse.Namespace) -> str | None:
         return f"--max-latency-ms must be >= 0, got {args.max_latency_ms}"
     if args.max_sessions < 1:
         return f"--max-sessions must be positive, got {args.max_sessions}"
+    if args.auth_key is None and not args.no_auth:
+        return (
+            "no --auth-key: anyone could publish. Make a key with"
+            " `upcast token generate --key PATH` and pass --auth-key PATH,"
+            " or pass --no-auth for an open relay (local development only)"
+        )
+    if args.auth_key is not None and args.no_auth:
+        return "--auth-key and --no-auth exclude each other"
+    if args.viewer_upload_kib_s < 1:
+        return f"--viewer-upload-kib-s must be positive, got {args.viewer_upload_kib_s}"
+    if args.publisher_upload_mib_s < 1:
+        return f"--publisher-upload-mib-s must be positive, got {args.publisher_upload_mib_s}"
     if args.web_root is not None and not (args.web_root / "index.html").is_file():
         return (
             f"--web-root {args.web_root} has no index.html"
@@ -72,10 +116,27 @@ def _problem(args: argparse.Namespace) -> str | None:
     return None
 
 
+def _authorizer(args: argparse.Namespace) -> Authorizer:
+    """Raises KeyFileError (it names the file) for a missing or malformed key."""
+    from server.auth import Authorizer, load_key
+
+    if args.no_auth:
+        log.warning("relay: --no-auth: anyone may publish and send inputs")
+        return Authorizer.open_relay()
+    return Authorizer(load_key(args.auth_key), public_viewers=args.public_viewers)
+
+
 def run(args: argparse.Namespace) -> int:
+    from server.auth import KeyFileError
+
     problem = _problem(args)
     if problem is not None:
         print(f"upcast relay: {problem}", file=sys.stderr)
+        return 2
+    try:
+        args.authorizer = _authorizer(args)
+    except KeyFileError as exc:
+        print(f"upcast relay: --auth-key: {exc}", file=sys.stderr)
         return 2
     from server.event_loop import install_uvloop
 
@@ -105,6 +166,13 @@ async def _serve(args: argparse.Namespace, cert: CertBundle) -> int:
         max_backlog_bytes=args.max_backlog_kib * 1024,
         default_max_latency_ms=args.max_latency_ms,
         max_connections=args.max_sessions,
+        authorizer=args.authorizer,
+        ingress=IngressLimits(
+            viewer_bytes_per_s=args.viewer_upload_kib_s * 1024,
+            viewer_burst_bytes=4 * args.viewer_upload_kib_s * 1024,
+            publisher_bytes_per_s=args.publisher_upload_mib_s * 1024 * 1024,
+            publisher_burst_bytes=args.publisher_upload_mib_s * 1024 * 1024,
+        ),
     )
     relay = Relay(config, cert)
     try:

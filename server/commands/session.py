@@ -34,6 +34,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--attach-timeout", type=float, default=10.0, help="seconds to wait for the ring"
     )
+    token = parser.add_mutually_exclusive_group()
+    token.add_argument(
+        "--token", default=None, help="publish token for the relay (upcast token sign ...)"
+    )
+    token.add_argument(
+        "--token-file",
+        type=Path,
+        default=None,
+        help="read the publish token from this file (keeps it out of the process list)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -59,6 +69,16 @@ def run(args: argparse.Namespace) -> int:
             f"upcast session: --relay must be an http(s):// URL, got {args.relay}", file=sys.stderr
         )
         return 2
+    if args.token_file is not None:
+        try:
+            args.token = args.token_file.read_text().strip()
+        except OSError as exc:
+            problem = exc.strerror or exc
+            print(f"upcast session: --token-file {args.token_file}: {problem}", file=sys.stderr)
+            return 2
+        if not args.token:
+            print(f"upcast session: --token-file {args.token_file} is empty", file=sys.stderr)
+            return 2
     from server.event_loop import install_uvloop
 
     install_uvloop()
@@ -90,6 +110,7 @@ async def _main(args: argparse.Namespace) -> int:
             bitrate=None if args.bitrate_kbps is None else args.bitrate_kbps * 1000,
             gop_seconds=args.gop_seconds,
             cert_hash_hex=args.cert_sha256,
+            token=args.token,
         ),
         ring,
         display,

@@ -15,14 +15,17 @@ import contextlib
 import logging
 import signal
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from server.auth.keys import KeyFileError
 from server.browser_paths import WEB_ROOT
 from server.stack_args import add_session_arguments, session_config_from
 
 if TYPE_CHECKING:
+    from server.auth.minting import SessionTokens
     from server.stack import SessionConfig
     from server.stream_config import StreamConfig
 
@@ -60,11 +63,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--duration", type=float, default=None, help="stop after SECONDS (default: until Ctrl-C)"
     )
+    parser.add_argument(
+        "--auth-key",
+        type=Path,
+        default=None,
+        help="relay key file (JWK) to sign tokens with (default: a new one, gone at exit)",
+    )
 
 
 def _problem(args: argparse.Namespace) -> str | None:
     if args.duration is not None and args.duration <= 0:
         return f"--duration must be positive, got {args.duration}"
+    if args.auth_key is not None and not args.auth_key.is_file():
+        return (
+            f"--auth-key {args.auth_key} does not exist"
+            f" (make one: upcast token generate --key {args.auth_key})"
+        )
     if not (args.web_root / "index.html").is_file():
         return (
             f"the web client is not built ({args.web_root}/index.html missing): "
@@ -84,6 +98,19 @@ def _session_host(bind: str) -> str:
     if bind in ("::", "", "0.0.0.0"):
         return "127.0.0.1"
     return f"[{bind}]" if ":" in bind else bind
+
+
+def _keys(given: Path | None, tmp: Path, broadcast: str) -> tuple[Path, SessionTokens]:
+    """The relay's key file (``given``, or a new one in ``tmp``) and the session's and
+    player's tokens signed with it."""
+    from server.auth import generate_key, load_key
+    from server.auth.minting import session_tokens
+
+    path = given
+    if path is None:
+        path = tmp / "relay.jwk"
+        generate_key(path)
+    return path, session_tokens(load_key(path), broadcast)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -125,7 +152,14 @@ async def _main(args: argparse.Namespace, config: SessionConfig, stream: StreamC
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, stop.set)
 
-    relay = RelayProcess(stream.host, stream.port, args.web_root)
+    key_dir = tempfile.TemporaryDirectory(prefix="upcast-key-")
+    try:
+        key_path, tokens = _keys(args.auth_key, Path(key_dir.name), stream.broadcast)
+    except KeyFileError as exc:
+        key_dir.cleanup()
+        print(f"upcast up: --auth-key: {exc}", file=sys.stderr)
+        return 2
+    relay = RelayProcess(stream.host, stream.port, args.web_root, auth_key=key_path)
     stack = LocalStack(config)
     session_task: asyncio.Task[None] | None = None
     code = 0
@@ -154,6 +188,7 @@ async def _main(args: argparse.Namespace, config: SessionConfig, stream: StreamC
             gop_seconds=stream.gop_seconds,
             upscaler=config.upscaler,
             scale=config.scale,
+            token=tokens.publisher,
         )
         session = StreamingSession(
             settings,
@@ -172,7 +207,8 @@ async def _main(args: argparse.Namespace, config: SessionConfig, stream: StreamC
             print("upcast up: the session could not publish to the relay", file=sys.stderr)
             return 1
         host = _browser_host(stream.host)
-        url = f"http://{host}:{endpoint.port}/?broadcast={stream.broadcast}"
+        # The player's token rides in the page URL; the page adds it to the relay URL.
+        url = f"http://{host}:{endpoint.port}/?broadcast={stream.broadcast}&jwt={tokens.player}"
         extras = f"; session metrics http://{host}:{metrics_port}/metrics" if metrics_port else ""
         print(
             f"upcast is up: watch at {url}  (relay metrics http://{host}:{endpoint.port}/metrics"
@@ -207,5 +243,6 @@ async def _main(args: argparse.Namespace, config: SessionConfig, stream: StreamC
                 await session_task
         stack.stop()
         relay.stop()
+        key_dir.cleanup()
         log.info("upcast stopped; session %s cleaned up", config.name)
     return code

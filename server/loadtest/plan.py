@@ -57,6 +57,7 @@ class LoadConfig:
     min_fps: float = 29.0
     max_p95_ms: float = 50.0
     cert_hash_hex: str | None = None
+    token: str | None = None  # the viewers' relay token (?jwt=); None: anonymous viewers
 
     def problem(self) -> str | None:
         """What is wrong with the settings, naming the option; None when usable."""

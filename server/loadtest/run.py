@@ -125,7 +125,9 @@ async def run_load(
     note = await _wait_broadcast(relay, config)
     if note is not None:
         notes.append(note)
-    viewer_config = ViewerConfig(config.relay_url, config.broadcast, cert, config.connect_timeout_s)
+    viewer_config = ViewerConfig(
+        config.relay_url, config.broadcast, cert, config.connect_timeout_s, config.token
+    )
     board: ProgressBoard | None = None
 
     def sink(snap: Snapshot) -> None:

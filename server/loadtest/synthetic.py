@@ -65,6 +65,7 @@ class SyntheticSettings:
     broadcast: str = "game"
     encode: str = "loop"  # "loop" or "live"
     cert_hash_hex: str | None = None
+    token: str | None = None  # publish token for the relay (?jwt=)
 
     def problem(self) -> str | None:
         if not self.relay_url.startswith(("http://", "https://")):
@@ -201,6 +202,7 @@ class SyntheticPublisher:
                     on_events=self._on_events,
                     cert_hash_hex=self.settings.cert_hash_hex,
                     timeout=5.0,
+                    token=self.settings.token,
                 )
             except (WtConnectError, ConnectionError, OSError, TimeoutError) as exc:
                 log.warning("relay unreachable (%s); retrying", exc)
@@ -278,6 +280,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--cert-hash", default=None, help="pin this certificate SHA-256 (hex)")
     parser.add_argument("--duration", type=float, required=True, help="stop after SECONDS")
+    parser.add_argument("--token", default=None, help="publish token (upcast token sign ...)")
 
 
 def settings_from(args: argparse.Namespace) -> SyntheticSettings:
@@ -298,6 +301,7 @@ def settings_from(args: argparse.Namespace) -> SyntheticSettings:
         broadcast=args.broadcast,
         encode=args.encode,
         cert_hash_hex=args.cert_hash,
+        token=args.token,
     )
     problem = settings.problem()
     if problem is not None:

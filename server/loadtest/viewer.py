@@ -51,6 +51,7 @@ class ViewerConfig:
     broadcast: str
     cert_hash_hex: str | None
     connect_timeout_s: float
+    token: str | None = None
 
 
 @dataclass(frozen=True)
@@ -92,6 +93,7 @@ class LoadViewer:
                 on_closed=self._on_closed,
                 cert_hash_hex=self.config.cert_hash_hex,
                 timeout=self.config.connect_timeout_s,
+                token=self.config.token,
             )
         except (WtConnectError, ConnectionError, OSError, TimeoutError, ValueError) as exc:
             self.stats.error = f"connect: {exc}"

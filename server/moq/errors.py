@@ -21,6 +21,7 @@ class ErrorCode(IntEnum):
     DUPLICATE = 6  # a subscription id reused while still active
     SKIPPED = 7  # relay dropped this group because the viewer fell behind
     GONE = 8  # the publisher of this track went away
+    UNAUTHORIZED = 9  # the session's token does not allow this publish or subscribe
 
 
 class ProtocolError(Exception):

@@ -24,6 +24,10 @@ Choices (and why):
   ordered @moq/lite consumer would silently drop the "older" groups.
 - Broadcast owner: the latest announcer wins, so a publisher that reconnects before its old
   connection times out takes over at once.
+- Access (a connection's `AccessPolicy`, from its token): announcing a path it may not
+  publish closes that one session (moq-lite has no per-announce error, and a peer that
+  tries is not one to keep talking to); subscribing to a path it may not read is refused
+  (UNAUTHORIZED) on that request only; it is told only about broadcasts it may read.
 """
 
 from __future__ import annotations
@@ -32,6 +36,7 @@ import time
 from collections import deque
 from collections.abc import Callable, Hashable
 from dataclasses import dataclass, field
+from typing import Protocol
 
 from .errors import ErrorCode
 from .events import (
@@ -55,6 +60,29 @@ TrackKey = tuple[str, str]  # (broadcast path, track name)
 ViewerKey = tuple[ConnId, int]  # (viewer connection, its request id)
 
 
+class AccessPolicy(Protocol):
+    """What one connection may do (server.auth.Grant implements it)."""
+
+    def may_publish(self, path: str) -> bool: ...
+
+    def may_subscribe(self, path: str) -> bool: ...
+
+
+class OpenAccess:
+    """Everything allowed: connections added without a policy."""
+
+    def may_publish(self, path: str) -> bool:
+        return True
+
+    def may_subscribe(self, path: str) -> bool:
+        return True
+
+
+OPEN_ACCESS = OpenAccess()
+# on_denied(connection, "publish" | "subscribe", path): the adapter logs and counts.
+DeniedHook = Callable[[ConnId, str, str], None]
+
+
 @dataclass(slots=True)
 class ConnStats:
     """Per-connection counters for metrics (payload bytes, not wire bytes)."""
@@ -70,6 +98,7 @@ class ConnStats:
 class _Conn:
     session: MoqSession
     interest: int
+    access: AccessPolicy
     stats: ConnStats = field(default_factory=ConnStats)
     broadcasts: set[str] = field(default_factory=set)
     upstream: dict[int, TrackKey] = field(default_factory=dict)  # our subscription id
@@ -126,10 +155,12 @@ class RelayCore:
         default_max_latency_s: float | None = None,
         max_group_cache_bytes: int = 32 * 1024 * 1024,
         on_frame: Callable[[TrackKey, int, float], None] | None = None,
+        on_denied: DeniedHook | None = None,
     ) -> None:
         """``on_frame(track, payload bytes, seconds spent fanning it out)`` is called for
         every frame a publisher delivers: the relay's monitor and metrics."""
         self._buffered_bytes = buffered_bytes
+        self._on_denied = on_denied
         self._on_frame_hook = on_frame
         self._clock = clock
         self.max_backlog_bytes = max_backlog_bytes
@@ -143,12 +174,15 @@ class RelayCore:
 
     # ------------------------------------------------------------------ adapter API
 
-    def add_connection(self, conn_id: ConnId, session: MoqSession) -> set[ConnId]:
-        """Register a session: ask it for its broadcasts, offer it everyone else's."""
+    def add_connection(
+        self, conn_id: ConnId, session: MoqSession, access: AccessPolicy = OPEN_ACCESS
+    ) -> set[ConnId]:
+        """Register a session: ask it for its broadcasts, offer it everyone else's (those
+        its `access` lets it read)."""
         interest = session.request_announces("")
-        self._conns[conn_id] = _Conn(session, interest)
+        self._conns[conn_id] = _Conn(session, interest, access)
         for path, owner in self._owners.items():
-            if owner != conn_id:
+            if owner != conn_id and access.may_subscribe(path):
                 session.publish(path, self._hops[path])
         self._touched.add(conn_id)
         return self._take_touched()
@@ -268,13 +302,20 @@ class RelayCore:
             return
         if owner == conn_id:
             return
+        conn = self._conns[conn_id]
+        if not conn.access.may_publish(path):
+            self._deny(conn_id, "publish", path)
+            conn.session.close(ErrorCode.UNAUTHORIZED, "not allowed to publish this path")
+            # handle() still returns conn_id, so its close goes out with this flush.
+            self._touched |= self.remove_connection(conn_id)
+            return
         if owner is not None:
             self._withdraw(path)  # a new publisher takes over
         self._owners[path] = conn_id
         self._hops[path] = event.hop_count + 1
-        self._conns[conn_id].broadcasts.add(path)
+        conn.broadcasts.add(path)
         for other_id, other in self._conns.items():
-            if other_id != conn_id:
+            if other_id != conn_id and other.access.may_subscribe(path):
                 other.session.publish(path, event.hop_count + 1)
                 self._touched.add(other_id)
 
@@ -297,6 +338,10 @@ class RelayCore:
 
     def _on_viewer_subscribe(self, conn_id: ConnId, conn: _Conn, e: SubscribeRequested) -> None:
         self._touched.add(conn_id)
+        if not conn.access.may_subscribe(e.broadcast):
+            self._deny(conn_id, "subscribe", e.broadcast)
+            conn.session.reject_subscribe(e.request_id, ErrorCode.UNAUTHORIZED)
+            return
         owner = self._owners.get(e.broadcast)
         # A closed publisher session has a SessionError waiting to be handled: treat as gone.
         if owner is None or owner == conn_id or self._conns[owner].session.closed:
@@ -514,6 +559,10 @@ class RelayCore:
         # The next GroupOpened gives this viewer a fresh stream from that group's start.
 
     # ------------------------------------------------------------------- helpers
+
+    def _deny(self, conn_id: ConnId, action: str, path: str) -> None:
+        if self._on_denied is not None:
+            self._on_denied(conn_id, action, path)
 
     def _upstream_track(self, conn: _Conn, subscription_id: int) -> _Track | None:
         key = conn.upstream.get(subscription_id)

@@ -12,7 +12,7 @@ from .certs import CertBundle
 from .connection import IDLE_TIMEOUT_S
 from .http_side import HttpSide, Route, bind_tcp, serve_http
 from .server import DEFAULT_PROTOCOLS, WtServer, bind_udp, serve_webtransport
-from .session import HandlerFactory
+from .session import Authorize, HandlerFactory
 
 
 @dataclass
@@ -55,6 +55,7 @@ async def serve(
     web_root: str | Path | None = None,
     routes: Mapping[str, Route] | None = None,
     idle_timeout: float = IDLE_TIMEOUT_S,
+    authorize: Authorize | None = None,
 ) -> Endpoints:
     """WebTransport on UDP and HTTP (hash, static files, routes) on TCP, one port."""
     udp, tcp = bind_pair(host, port)
@@ -67,6 +68,7 @@ async def serve(
             allow_no_protocol=allow_no_protocol,
             sock=udp,
             idle_timeout=idle_timeout,
+            authorize=authorize,
         )
     except BaseException:
         udp.close()

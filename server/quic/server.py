@@ -12,7 +12,7 @@ import contextlib
 import logging
 import socket
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from aioquic.asyncio.server import QuicServer
@@ -24,11 +24,13 @@ from aioquic.quic.connection import QuicConnection
 from . import sf
 from .certs import CertBundle
 from .connection import IDLE_TIMEOUT_S, WtConnection, decode_headers
-from .session import HandlerFactory, WtRequest, WtSession
+from .refusals import RefusalLog
+from .session import Authorize, HandlerFactory, Refusal, WtRequest, WtSession
 
 log = logging.getLogger(__name__)
 
 DEFAULT_PROTOCOLS = ("moq-lite-03",)
+H3_REQUEST_REJECTED = 0x10B
 
 
 @dataclass(frozen=True)
@@ -40,6 +42,10 @@ class WtServerOptions:
     """Accept (200, no wt-protocol header) when nothing offered is supported."""
     wt_max_sessions: int = 1
     """SETTINGS_WT_MAX_SESSIONS to advertise (Safari needs >= 1); 0 sends none."""
+    authorize: Authorize | None = None
+    """Checked before the 200 and before any session state exists (see Authorize)."""
+    refusal_log: RefusalLog = field(default_factory=RefusalLog)
+    """Shared by every connection of the server: the rate limit is server-wide."""
 
 
 def choose_protocol(offered: Sequence[str], supported: Sequence[str]) -> str | None:
@@ -71,6 +77,17 @@ class WtServerConnection(WtConnection):
             log.info("refusing WebTransport session: no common protocol in %s", offered)
             self._refuse(stream_id, 400)
             return
+        path = headers.get(":path", "/")
+        grant: object | None = None
+        if self._options.authorize is not None:
+            try:
+                grant = self._options.authorize(path, headers)
+            except Exception:
+                log.exception("WebTransport authorize hook failed")
+                grant = Refusal(500, "authorize hook failed")
+            if isinstance(grant, Refusal):
+                self._refuse_unauthorized(stream_id, grant)
+                return
 
         reply = [(b":status", b"200"), (b"sec-webtransport-http3-draft", b"draft02")]
         if chosen is not None:
@@ -87,11 +104,12 @@ class WtServerConnection(WtConnection):
         )
         self.sessions[stream_id] = session
         request = WtRequest(
-            path=headers.get(":path", "/"),
+            path=path,
             authority=headers.get(":authority", ""),
             headers=headers,
             protocol=chosen,
             remote_address=session.remote_address,
+            grant=grant,
         )
         try:
             handler = self._options.factory(session, request)
@@ -100,6 +118,18 @@ class WtServerConnection(WtConnection):
             session.close(1, "internal error")
             return
         session.attach(handler)
+
+    def _refuse_unauthorized(self, stream_id: int, refusal: Refusal) -> None:
+        """Answer 401/403 and close the whole QUIC connection: its one use was this
+        session, and a client that never closes (a flood) must not keep state here
+        until the idle timeout."""
+        host, port = self.remote_address
+        self._options.refusal_log.refused(f"{host}:{port}", refusal.status, refusal.reason)
+        self._refuse(stream_id, refusal.status)
+        if not self.sessions:
+            self.transmit()  # the refusal leaves before CONNECTION_CLOSE
+            self._quic.close(error_code=H3_REQUEST_REJECTED, reason_phrase="unauthorized")
+            self.schedule_transmit()
 
     def _refuse(self, stream_id: int, status: int) -> None:
         try:
@@ -112,12 +142,22 @@ class WtServerConnection(WtConnection):
 class WtServer:
     """A listening WebTransport endpoint. `port` is the bound UDP port."""
 
-    def __init__(self, quic_server: QuicServer, transport: asyncio.DatagramTransport) -> None:
+    def __init__(
+        self,
+        quic_server: QuicServer,
+        transport: asyncio.DatagramTransport,
+        refusal_log: RefusalLog | None = None,
+    ) -> None:
         self._quic_server = quic_server
+        self.refusal_log = refusal_log or RefusalLog()
         self._transport = transport
         sockname = transport.get_extra_info("sockname")
         self.host: str = sockname[0]
         self.port: int = sockname[1]
+
+    def connection_count(self) -> int:
+        """QUIC connections the server still holds state for (draining ones included)."""
+        return len(set(self._quic_server._protocols.values()))
 
     def close(self) -> None:
         """Close every connection (CONNECTION_CLOSE sent) and stop listening.
@@ -191,6 +231,7 @@ async def serve_webtransport(
     wt_max_sessions: int = 1,
     idle_timeout: float = IDLE_TIMEOUT_S,
     sock: socket.socket | None = None,
+    authorize: Authorize | None = None,
 ) -> WtServer:
     """Listen for WebTransport on UDP `host`:`port` (or an already bound `sock`)."""
     options = WtServerOptions(
@@ -198,6 +239,7 @@ async def serve_webtransport(
         protocols=tuple(protocols),
         allow_no_protocol=allow_no_protocol,
         wt_max_sessions=wt_max_sessions,
+        authorize=authorize,
     )
     configuration = server_configuration(cert, idle_timeout)
 
@@ -209,4 +251,4 @@ async def serve_webtransport(
         lambda: QuicServer(configuration=configuration, create_protocol=create_protocol),
         sock=sock if sock is not None else bind_udp(host, port),
     )
-    return WtServer(quic_server, transport)
+    return WtServer(quic_server, transport, options.refusal_log)

@@ -43,6 +43,22 @@ class WtRequest:
     """The negotiated `wt-protocol`, or None when the session has none."""
     remote_address: Address
     """Peer (host, port); IPv4-mapped IPv6 addresses are shown as plain IPv4."""
+    grant: object | None = None
+    """On the server: what the `authorize` hook granted this session (None: no hook)."""
+
+
+@dataclass(frozen=True, slots=True)
+class Refusal:
+    """An `authorize` hook's "no": the HTTP status for the CONNECT and a short reason
+    for the log (never echoed to the peer)."""
+
+    status: int
+    reason: str
+
+
+Authorize = Callable[[str, dict[str, str]], object]
+"""``authorize(request_path, headers)`` -> a Refusal, or the grant to attach to the
+session's WtRequest. Runs before the server answers 200 or allocates the session."""
 
 
 class WtSessionHandler(Protocol):

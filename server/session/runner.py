@@ -48,6 +48,7 @@ class StreamSettings:
     cert_hash_hex: str | None = None  # pin the relay's certificate (else fetched over http)
     upscaler: str | None = None  # what the worker starts with (shown in the player)
     scale: float | None = None  # display / render size at start
+    token: str | None = None  # JWT for the relay (sent as ?jwt=); None: an open relay
 
 
 class StreamingSession:
@@ -168,7 +169,10 @@ class StreamingSession:
         while not stop.is_set():
             try:
                 link = await connect_moq(
-                    url, on_events=self._on_events, cert_hash_hex=self.settings.cert_hash_hex
+                    url,
+                    on_events=self._on_events,
+                    cert_hash_hex=self.settings.cert_hash_hex,
+                    token=self.settings.token,
                 )
             except (WtConnectError, OSError, TimeoutError) as exc:
                 log.warning("relay %s unreachable (%s); retrying in %.1f s", url, exc, delay)

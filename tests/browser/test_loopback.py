@@ -31,7 +31,7 @@ def page(web_root: str, browser: Any) -> Iterator[Any]:
     errors: list[str] = []
     page.on("pageerror", lambda exc: errors.append(str(exc)))
     try:
-        page.goto(f"{web_root}/test/loopback.html")
+        page.goto(f"{web_root}/test/loopback.html?jwt=loopback")  # a token: inputs on
         page.wait_for_function(PRESENTED_AT_LEAST, arg=10, timeout=15_000)
         yield page
         assert errors == []
