@@ -19,13 +19,12 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
-from urllib.parse import quote
 
 from server.serve.spec import SessionSpec
+from server.serve.tokens import TokenMinter, no_token, with_token
 from server.stack import SessionConfig, session_files
 from server.stream_config import StreamConfig
 
@@ -36,26 +35,6 @@ BACKOFF_MAX_S = 30.0
 STABLE_AFTER_S = 60.0
 STATUS_STALE_S = 5.0  # a status file older than this: the session is hung or gone
 STOP_TIMEOUT_S = 15.0
-
-TokenMinter = Callable[[str], str | None]
-
-
-def no_token(broadcast: str) -> None:
-    """AUTH: the single place where serve mints a session's publish token.
-
-    Returns None (publish without a token) until server/auth/ is wired here: the
-    lead replaces this with a minter that signs, for ``broadcast``, a token with
-    ``root=<broadcast>``, ``put=[""]`` and ``get=["input"]`` from ``--auth-key``."""
-    return None
-
-
-def with_token(relay_url: str, token: str | None) -> str:
-    """The relay URL carrying ``?jwt=<token>`` (browsers cannot set WebTransport headers;
-    moq-relay takes the token the same way)."""
-    if token is None:
-        return relay_url
-    sep = "&" if "?" in relay_url else "?"
-    return f"{relay_url}{sep}jwt={quote(token, safe='')}"
 
 
 @dataclass
