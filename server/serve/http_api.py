@@ -66,7 +66,9 @@ class ServeHttp:
 
     async def start(self, host: str, port: int) -> int:
         """Listen; returns the bound port."""
-        self._server = await asyncio.start_server(self._handle, host, port)
+        # asyncio binds "::" IPv6-only; None listens on every address of both families.
+        bind = None if host in ("::", "") else host
+        self._server = await asyncio.start_server(self._handle, bind, port)
         return int(self._server.sockets[0].getsockname()[1])
 
     async def close(self) -> None:
