@@ -37,16 +37,21 @@ WINDOW_S = 8.0
 TOLERANCE = 0.85
 
 
-def _frames(served: Served) -> dict[str, int]:
-    return {r["broadcast"]: int(r["frames"]) for r in served.sessions()}
+def _frames(served: Served) -> dict[str, tuple[float, int]]:
+    """Each session's (time it counted, frames it published)."""
+    return {r["broadcast"]: (r["frames_at"], int(r["frames"])) for r in served.sessions()}
 
 
 def _rates(served: Served, window_s: float) -> dict[str, float]:
     """Frames per second each session published over the next ``window_s``."""
-    t0, f0 = time.monotonic(), _frames(served)
+    f0 = _frames(served)
     time.sleep(window_s)
-    t1, f1 = time.monotonic(), _frames(served)
-    return {b: (f1[b] - f0[b]) / (t1 - t0) for b in f0 if b in f1}
+    f1 = _frames(served)
+    return {
+        b: (f1[b][1] - f0[b][1]) / (f1[b][0] - f0[b][0]) if f1[b][0] > f0[b][0] else 0.0
+        for b in f0
+        if b in f1
+    }
 
 
 # -- config --------------------------------------------------------------------------------

@@ -193,6 +193,9 @@ class Supervisor:
                     "worker_restarts": status.get("worker_restarts", 0),
                     "fps": status.get("fps", 0.0),
                     "frames": status.get("frames", 0),
+                    # When the session counted ``frames`` (wall clock): rates from these
+                    # two are exact, whenever /sessions is read.
+                    "frames_at": status.get("updated"),
                     "upscaler": status.get("upscaler", s.config.upscaler),
                     "scale": status.get("scale", round(s.config.scale, 3)),
                     "target_fps": s.config.fps,
