@@ -38,10 +38,15 @@ class Served:
             return int(exc.code), bytes(exc.read())
 
     def sessions(self) -> list[dict[str, Any]]:
+        rows: list[dict[str, Any]] = self.answer()["sessions"]
+        return rows
+
+    def answer(self) -> dict[str, Any]:
+        """The whole ``/sessions`` answer (``relay`` and ``sessions``)."""
         status, body = self.get("/sessions")
         assert status == 200
-        rows: list[dict[str, Any]] = json.loads(body)["sessions"]
-        return rows
+        answer: dict[str, Any] = json.loads(body)
+        return answer
 
     def wait(self, pred: Any, timeout_s: float, what: str) -> list[dict[str, Any]]:
         deadline = time.monotonic() + timeout_s

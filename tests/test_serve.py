@@ -16,6 +16,7 @@ larger drop or zero.
 
 from __future__ import annotations
 
+import asyncio
 import json
 import os
 import signal
@@ -28,6 +29,8 @@ from typing import Any
 import pytest
 
 from server.serve.config import ConfigFileError, load_overrides, session_configs
+from server.serve.control_client import request_control
+from server.session.session_control import SessionControl
 from server.stack import SessionConfig, session_files
 from server.stream_config import StreamConfig
 from tests.serve_harness import ROOT, SMALL, Served, serve
@@ -117,6 +120,7 @@ def _by_broadcast(rows: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
 
 
 def _assert_kept_rate(before: dict[str, float], after: dict[str, float], others: list[str]) -> None:
+    print(f"fps before: {before}\nfps after:  {after}")  # shown with pytest -s / on failure
     for b in others:
         assert after[b] >= TOLERANCE * before[b], (
             f"{b} fell from {before[b]:.1f} to {after[b]:.1f} fps ({before=}, {after=})"
@@ -184,6 +188,25 @@ def test_killing_a_whole_session_restarts_it_and_nobody_else_notices(four: Serve
         assert not Path(f"/proc/{pid}").exists() or _is_zombie(int(pid))
     assert not [p for p in session_files(victim["name"]) if p.exists()]
     assert _rates(four, 4.0)["game-3"] > 10
+
+
+@pytest.mark.slow
+def test_a_restarted_relay_gets_every_session_back(four: Served) -> None:
+    """Runs last in this module: every session loses its relay connection."""
+    relay = four.answer()["relay"]
+    os.kill(int(relay["pid"]), signal.SIGKILL)
+    deadline = time.monotonic() + 60
+    while four.answer()["relay"]["restarts"] != 1:
+        assert time.monotonic() < deadline, "the relay was not restarted"
+        time.sleep(0.5)
+    # A control request is answered over the new relay only by a session publishing there.
+    for row in four.sessions():
+        record = asyncio.run(
+            request_control(
+                four.relay_url, row["broadcast"], SessionControl(upscaler="bilinear"), timeout_s=30
+            )
+        )
+        assert record.last_control is not None and record.last_control.accepted, record
 
 
 def _is_zombie(pid: int) -> bool:

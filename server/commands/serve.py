@@ -160,7 +160,6 @@ async def _main(args: argparse.Namespace, sessions: list[ServedSession]) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, stop.set)
     relay: RelayProcess | None = None
-    cert: str | None = None
     host = _browser_host(args.host)
     if args.relay is None:
         relay = RelayProcess(args.host, args.port, args.web_root)
@@ -169,13 +168,14 @@ async def _main(args: argparse.Namespace, sessions: list[ServedSession]) -> int:
         except (RuntimeError, TimeoutError) as exc:
             print(f"upcast serve: relay failed on port {args.port}: {exc}", file=sys.stderr)
             return 1
+        # Not pinned to this certificate: a restarted relay has a new one, and an
+        # http:// URL makes each (re)connect fetch the current hash.
         relay_url = f"http://127.0.0.1:{endpoint.port}/"
         watch_base = f"http://{host}:{endpoint.port}/"
-        cert = endpoint.cert_sha256
     else:
         relay_url = watch_base = args.relay if args.relay.endswith("/") else args.relay + "/"
-    supervisor = Supervisor(sessions, relay_url=relay_url, cert_hash_hex=cert)
-    http = ServeHttp(supervisor)
+    supervisor = Supervisor(sessions, relay_url=relay_url)
+    http = ServeHttp(supervisor, relay)
     code = 0
     try:
         http_port = await http.start(args.host, _http_port(args))
@@ -190,6 +190,7 @@ async def _main(args: argparse.Namespace, sessions: list[ServedSession]) -> int:
             supervisor.check()
             if relay is not None and relay.check():
                 log.warning("relay restarted (restart #%d)", relay.restarts)
+                supervisor.relay_restarted()
             if not announced and supervisor.all_up():
                 announced = True
                 for s in supervisor.sessions:

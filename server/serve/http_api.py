@@ -16,6 +16,7 @@ from prometheus_client import CollectorRegistry, generate_latest
 from prometheus_client.core import GaugeMetricFamily
 from prometheus_client.registry import Collector
 
+from server.relay_process import RelayProcess
 from server.serve.supervisor import Supervisor
 
 log = logging.getLogger(__name__)
@@ -27,8 +28,9 @@ READ_TIMEOUT_S = 5.0
 class _SessionCollector(Collector):
     """Per-session gauges, read from the supervisor at scrape time."""
 
-    def __init__(self, supervisor: Supervisor) -> None:
+    def __init__(self, supervisor: Supervisor, relay: RelayProcess | None = None) -> None:
         self.supervisor = supervisor
+        self.relay = relay  # the relay serve started (None: an external one)
 
     def collect(self) -> Iterable[GaugeMetricFamily]:
         rows = self.supervisor.snapshot()
@@ -58,8 +60,9 @@ class _SessionCollector(Collector):
 
 
 class ServeHttp:
-    def __init__(self, supervisor: Supervisor) -> None:
+    def __init__(self, supervisor: Supervisor, relay: RelayProcess | None = None) -> None:
         self.supervisor = supervisor
+        self.relay = relay  # the relay serve started (None: an external one)
         self.registry = CollectorRegistry()
         self.registry.register(_SessionCollector(supervisor))
         self._server: asyncio.Server | None = None
@@ -80,7 +83,8 @@ class ServeHttp:
         """(status, content type, body) for a GET of ``path``."""
         path = path.split("?", 1)[0]
         if path == "/sessions":
-            body = json.dumps({"sessions": self.supervisor.snapshot()}, indent=1).encode()
+            answer = {"relay": self._relay(), "sessions": self.supervisor.snapshot()}
+            body = json.dumps(answer, indent=1).encode()
             return 200, "application/json", body
         if path == "/metrics":
             return 200, "text/plain; version=0.0.4", generate_latest(self.registry)
@@ -88,6 +92,17 @@ class ServeHttp:
             ok = self.supervisor.all_up()
             return (200 if ok else 503), "text/plain", b"ok\n" if ok else b"sessions down\n"
         return 404, "text/plain", b"not found\n"
+
+    def _relay(self) -> dict[str, object]:
+        relay = self.relay
+        if relay is None:
+            return {"url": self.supervisor.relay_url, "pid": None, "restarts": None}
+        proc = relay.proc
+        return {
+            "url": self.supervisor.relay_url,
+            "pid": None if proc is None else proc.pid,
+            "restarts": relay.restarts,
+        }
 
     async def _handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         try:

@@ -55,12 +55,25 @@ async def _run(spec: SessionSpec) -> int:
         metrics_port=spec.metrics_port,
         cert_hash_hex=spec.cert_hash_hex,
     )
+    running: list[LiveSession] = []
+
+    def up(live: LiveSession) -> None:
+        running.append(live)
+        write_status(spec.status_path, "up", live)
+
+    def reconnect() -> None:
+        if running:
+            running[0].session.reconnect()
+
+    # The supervisor sends SIGUSR1 after it restarted the relay: reconnect now rather
+    # than after the dead connection's idle timeout.
+    loop.add_signal_handler(signal.SIGUSR1, reconnect)
     write_status(spec.status_path, "starting")
     try:
         await run_game_session(
             plan,
             stop,
-            on_up=lambda live: write_status(spec.status_path, "up", live),
+            on_up=up,
             on_tick=lambda live: write_status(spec.status_path, "up", live),
         )
     except (RuntimeError, TimeoutError) as exc:

@@ -132,6 +132,14 @@ class Supervisor:
             elif s.proc is None and s.next_start_at is not None and now >= s.next_start_at:
                 self._start(s)
 
+    def relay_restarted(self) -> None:
+        """Tell every session to reconnect at once (SIGUSR1, see session_process.py)."""
+        for s in self.sessions:
+            # A status file exists only once the process handles SIGUSR1 (else it would die).
+            if s.proc is not None and s.proc.poll() is None and s.status():
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(s.proc.pid, signal.SIGUSR1)
+
     def _reap(self, s: ServedSession) -> None:
         """End what a dead session process left behind: its game, its worker, its files."""
         assert s.proc is not None
