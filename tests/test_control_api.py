@@ -17,6 +17,7 @@ import pytest
 
 from server.control import ControlServer, SetUpscaler, parse_message
 from server.moq import events as ev
+from server.serve.control_client import request_control
 from server.serve.control_schema import DEFAULT_PATH, render
 from server.session.input_router import InputRouter
 from server.session.session_control import ControlResult, StatusRecord
@@ -150,5 +151,10 @@ def test_upcast_control_switches_a_served_session_and_reports_refusals() -> None
         assert "unknown 'no_such_method'" in (record.last_control.reason or "")
         assert "refused" in refused.stderr
 
-        missing = _control(served.relay_url, "--scale", "2", "--timeout", "3")
-        assert missing.returncode == 0, missing.stderr  # scale alone: applied by the game
+        scaled = _control(served.relay_url, "--scale", "2")
+        assert scaled.returncode == 0, scaled.stderr  # scale alone: applied by the game
+
+        # A request the CLI would not send (out of range) is refused by the session itself.
+        record = asyncio.run(request_control(served.relay_url, "ctl-1", {"scale": 99}))
+        assert record.last_control is not None and not record.last_control.accepted
+        assert "scale" in (record.last_control.reason or "")
