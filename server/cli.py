@@ -22,6 +22,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "preview": ("preview", "game + worker + a local MJPEG preview page (no streaming server)"),
     "relay": ("relay", "run the moq-lite relay: publishers in, browsers and viewers out"),
     "session": ("session", "stream an existing game session's ring U to a relay"),
+    "serve": ("serve", "N game sessions, each its own process, on one relay; restarts the dead"),
+    "control": ("control", "change a session's upscaler or scale over MoQ; print the result"),
     "loadtest": ("loadtest", "many moq-lite viewers against a relay: fps, loss, latency, CPU"),
     "token": ("token", "make the relay's key file (generate) and tokens signed with it (sign)"),
 }

@@ -22,7 +22,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from server.config_types import SizeText, UpscalerName
 from server.frame import Size
-from server.ring import FrameRing
+from server.ring import SHM_DIR, FrameRing
 from server.ring_frames import create_display_ring, create_render_ring
 from upscalers import registry
 
@@ -81,6 +81,18 @@ _CHILD_ENV = {"MALLOC_MMAP_THRESHOLD_": str(512 << 20), "MALLOC_TRIM_THRESHOLD_"
 
 def _child_env() -> dict[str, str]:
     return {**os.environ, **_CHILD_ENV}
+
+
+def session_files(name: str) -> list[Path]:
+    """Every file a session called ``name`` creates: its two rings and two sockets.
+    ``upcast serve`` removes them after a session process was killed (no cleanup ran)."""
+    tmp = Path(tempfile.gettempdir())
+    return [
+        SHM_DIR / f"{name}-r",
+        SHM_DIR / f"{name}-u",
+        tmp / f"{name}.ctl",
+        tmp / f"{name}.input",
+    ]
 
 
 class LocalStack:

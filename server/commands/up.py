@@ -11,28 +11,21 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import contextlib
 import logging
 import signal
 import sys
-import tempfile
-import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from server.auth.keys import KeyFileError
 from server.browser_paths import WEB_ROOT
 from server.stack_args import add_session_arguments, session_config_from
 
 if TYPE_CHECKING:
-    from server.auth.minting import SessionTokens
+    from server.auth.keys import AuthKey
     from server.stack import SessionConfig
     from server.stream_config import StreamConfig
 
 log = logging.getLogger(__name__)
-
-CHECK_INTERVAL_S = 0.5
-CONNECT_TIMEOUT_S = 30.0
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -100,20 +93,9 @@ def _session_host(bind: str) -> str:
     return f"[{bind}]" if ":" in bind else bind
 
 
-def _keys(given: Path | None, tmp: Path, broadcast: str) -> tuple[Path, SessionTokens]:
-    """The relay's key file (``given``, or a new one in ``tmp``) and the session's and
-    player's tokens signed with it."""
-    from server.auth import generate_key, load_key
-    from server.auth.minting import session_tokens
-
-    path = given
-    if path is None:
-        path = tmp / "relay.jwk"
-        generate_key(path)
-    return path, session_tokens(load_key(path), broadcast)
-
-
 def run(args: argparse.Namespace) -> int:
+    from server.auth.keys import KeyFileError
+    from server.auth.stack_key import stack_key
     from server.config_errors import validated
     from server.event_loop import install_uvloop
     from server.stream_config import StreamConfig
@@ -136,32 +118,33 @@ def run(args: argparse.Namespace) -> int:
     if config is None or stream is None:
         return 2
     install_uvloop()
-    return asyncio.run(_main(args, config, stream))
+    try:
+        with stack_key(args.auth_key) as key:
+            return asyncio.run(_main(args, config, stream, key))
+    except KeyFileError as exc:
+        print(f"upcast up: --auth-key: {exc}", file=sys.stderr)
+        return 2
 
 
-async def _main(args: argparse.Namespace, config: SessionConfig, stream: StreamConfig) -> int:
-    from prometheus_client import CollectorRegistry, start_http_server
-
-    from server.frame import Size
+async def _main(
+    args: argparse.Namespace,
+    config: SessionConfig,
+    stream: StreamConfig,
+    key: tuple[Path, AuthKey],
+) -> int:
+    from server.auth.minting import session_tokens
+    from server.moq_link import with_token
     from server.relay_process import RelayProcess
-    from server.session.runner import StreamingSession, StreamSettings
-    from server.stack import LocalStack
+    from server.serve.session_body import LiveSession, SessionPlan, run_game_session
 
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, stop.set)
 
-    key_dir = tempfile.TemporaryDirectory(prefix="upcast-key-")
-    try:
-        key_path, tokens = _keys(args.auth_key, Path(key_dir.name), stream.broadcast)
-    except KeyFileError as exc:
-        key_dir.cleanup()
-        print(f"upcast up: --auth-key: {exc}", file=sys.stderr)
-        return 2
+    key_path, auth_key = key
+    tokens = session_tokens(auth_key, stream.broadcast)
     relay = RelayProcess(stream.host, stream.port, args.web_root, auth_key=key_path)
-    stack = LocalStack(config)
-    session_task: asyncio.Task[None] | None = None
     code = 0
     try:
         try:
@@ -169,80 +152,40 @@ async def _main(args: argparse.Namespace, config: SessionConfig, stream: StreamC
         except (RuntimeError, TimeoutError) as exc:
             print(f"upcast up: relay failed to start on port {stream.port}: {exc}", file=sys.stderr)
             return 1
-        await loop.run_in_executor(None, stack.start)
-        await loop.run_in_executor(None, stack.wait_ready)
-        assert stack.ring_u is not None
-        registry = CollectorRegistry()
-        metrics_port = stream.session_metrics_port
-        if metrics_port:
-            try:
-                start_http_server(metrics_port, registry=registry)
-            except OSError as exc:
-                log.warning("session metrics port %d unavailable: %s", metrics_port, exc)
-                metrics_port = 0
-        settings = StreamSettings(
-            relay_url=f"http://{_session_host(stream.host)}:{endpoint.port}/",
-            broadcast=stream.broadcast,
-            fps=config.fps,
-            bitrate=None if stream.bitrate_kbps is None else stream.bitrate_kbps * 1000,
-            gop_seconds=stream.gop_seconds,
-            upscaler=config.upscaler,
-            scale=config.scale,
-            token=tokens.publisher,
-        )
-        session = StreamingSession(
-            settings,
-            stack.ring_u,
-            Size.parse(config.display_size),
-            game_input=stack.input_path,
-            worker_control=stack.control_path,
-            registry=registry,
-            on_upscaler_set=stack.remember_upscaler,
-        )
-        session_task = asyncio.create_task(session.run(stop), name="session")
-        try:
-            async with asyncio.timeout(CONNECT_TIMEOUT_S):
-                await session.connected.wait()
-        except TimeoutError:
-            print("upcast up: the session could not publish to the relay", file=sys.stderr)
-            return 1
         host = _browser_host(stream.host)
-        # The player's token rides in the page URL; the page adds it to the relay URL.
-        url = f"http://{host}:{endpoint.port}/?broadcast={stream.broadcast}&jwt={tokens.player}"
-        extras = f"; session metrics http://{host}:{metrics_port}/metrics" if metrics_port else ""
-        print(
-            f"upcast is up: watch at {url}  (relay metrics http://{host}:{endpoint.port}/metrics"
-            f"{extras}; Ctrl-C to stop)",
-            flush=True,
+        plan = SessionPlan(
+            config=config,
+            stream=stream,
+            relay_url=with_token(
+                f"http://{_session_host(stream.host)}:{endpoint.port}/", tokens.publisher
+            ),
+            metrics_port=stream.session_metrics_port,
+            duration_s=args.duration,
         )
-        deadline = None if args.duration is None else time.monotonic() + args.duration
-        while not stop.is_set():
-            with contextlib.suppress(TimeoutError):
-                async with asyncio.timeout(CHECK_INTERVAL_S):
-                    await stop.wait()
-            stack.check_children()
+
+        def announce(live: LiveSession) -> None:
+            # The player's token rides in the page URL; the page adds it to the relay URL.
+            url = with_token(
+                f"http://{host}:{endpoint.port}/?broadcast={stream.broadcast}", tokens.player
+            )
+            port = live.metrics_port
+            extras = f"; session metrics http://{host}:{port}/metrics" if port else ""
+            print(
+                f"upcast is up: watch at {url}  (relay metrics http://{host}:{endpoint.port}"
+                f"/metrics{extras}; Ctrl-C to stop)",
+                flush=True,
+            )
+
+        def check_relay(live: LiveSession) -> None:
             if relay.check():
                 log.warning("relay restarted (restart #%d)", relay.restarts)
-                session.reconnect()
-            if session_task.done():
-                session_task.result()  # surfaces the error
-                break
-            if deadline is not None and time.monotonic() >= deadline:
-                log.info("duration of %.0f s reached: stopping", args.duration)
-                break
-    except RuntimeError as exc:  # the game died
-        print(f"upcast up: {exc}", file=sys.stderr)
-        code = 1
-    except TimeoutError as exc:
+                live.session.reconnect()
+
+        await run_game_session(plan, stop, on_up=announce, on_tick=check_relay)
+    except (RuntimeError, TimeoutError) as exc:  # the game died, or the session never published
         print(f"upcast up: {exc}", file=sys.stderr)
         code = 1
     finally:
-        stop.set()
-        if session_task is not None:
-            with contextlib.suppress(Exception):
-                await session_task
-        stack.stop()
         relay.stop()
-        key_dir.cleanup()
         log.info("upcast stopped; session %s cleaned up", config.name)
     return code

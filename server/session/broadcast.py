@@ -8,6 +8,9 @@ It publishes three tracks and listens for viewers' inputs:
   keyframe, so any group is decodable from its first frame.
 - ``timing``: one JSON record per video frame, in groups numbered like the
   video's (see timing_track.py).
+- ``status``: the session's state and the result of the last control request
+  (server/session/session_control.py), one JSON frame per group and a new
+  group per change, so a subscriber gets the current state at once.
 - inputs: viewers publish ``<name>/input/<id>`` broadcasts with an ``input``
   track; we ask the peer (the relay) for announces under ``<name>/input`` and
   subscribe to each one.
@@ -39,6 +42,7 @@ from server.moq.events import (
     SubscribeRequested,
 )
 from server.moq.session import MoqSession
+from server.session.session_control import STATUS_TRACK
 from server.session.timing_track import TRACK_NAME as TIMING_TRACK
 from server.session.timing_track import encode_timing, timing_record
 from server.timing import Stage, stamp
@@ -48,7 +52,7 @@ log = logging.getLogger(__name__)
 CATALOG_TRACK = "catalog.json"
 VIDEO_TRACK = "video"
 INPUT_TRACK = "input"
-TRACKS = (CATALOG_TRACK, VIDEO_TRACK, TIMING_TRACK)
+TRACKS = (CATALOG_TRACK, VIDEO_TRACK, TIMING_TRACK, STATUS_TRACK)
 MAX_INPUT_BROADCASTS = 64  # viewers sending input at once; more are ignored (and logged)
 
 
@@ -89,6 +93,8 @@ class GameBroadcast:
         self._input_paths: dict[str, int] = {}
         self._group_seq = -1  # sequence of the current video/timing group
         self._catalog_seq = 0
+        self.status_json: bytes | None = None  # None until the session says something
+        self._status_seq = -1
         self._published = 0  # frames published: the timing records' ``n``
         # What the stream runs now (upscaler, scale), sent in every timing record so a
         # page that joins later shows the server's settings, not its own defaults.
@@ -149,6 +155,8 @@ class GameBroadcast:
         log.info("subscriber %d for track %s", e.request_id, e.track)
         if e.track == CATALOG_TRACK:
             self._send_catalog(e.request_id, sub)
+        elif e.track == STATUS_TRACK:
+            self._send_status(e.request_id)
         else:
             self._on_keyframe_wanted()
 
@@ -168,6 +176,24 @@ class GameBroadcast:
         for request_id, sub in list(self._subscribers.items()):
             if sub.track == CATALOG_TRACK:
                 self._send_catalog(request_id, sub)
+
+    def set_status(self, status_json: bytes) -> None:
+        """A new status record: a new group for every status subscriber."""
+        self.status_json = status_json
+        self._status_seq += 1
+        for request_id, sub in list(self._subscribers.items()):
+            if sub.track == STATUS_TRACK:
+                self._send_status(request_id)
+
+    def _send_status(self, request_id: int) -> None:
+        session = self._session
+        if session is None or self.status_json is None:
+            return
+        stream = session.open_group(request_id, self._status_seq)
+        if stream is None:
+            return
+        session.write_frame(stream, self.status_json)
+        session.finish_group(stream)
 
     def _on_input_announce(self, e: AnnounceReceived) -> None:
         session = self._session

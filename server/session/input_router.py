@@ -10,6 +10,7 @@ their outcome is logged; a missing worker never blocks the loop.
 from __future__ import annotations
 
 import asyncio
+import json
 import logging
 import time
 from collections.abc import Callable
@@ -17,6 +18,7 @@ from pathlib import Path
 
 from server.control import SetUpscaler, send_control
 from server.game_input import InputMessage, send_input
+from server.session.session_control import NOT_AVAILABLE, ControlResult
 from server.session.viewer_input import (
     BadViewerMessage,
     ControlMessage,
@@ -43,12 +45,15 @@ class InputRouter:
         request_keyframe: Callable[[], None],
         on_upscaler_set: Callable[[str], None] | None = None,
         on_scale_request: Callable[[float], None] | None = None,
+        on_control_result: Callable[[ControlResult], None] | None = None,
     ) -> None:
         self.game_input = game_input
         self.worker_control = worker_control
         self.request_keyframe = request_keyframe
         self.on_upscaler_set = on_upscaler_set
         self.on_scale_request = on_scale_request
+        # Every control request ends in exactly one result (the status track shows it).
+        self.on_control_result = on_control_result
         self.held: dict[str, HeldKeys] = {}
         self.accepted = 0
         self.refused = 0
@@ -61,6 +66,7 @@ class InputRouter:
         except BadViewerMessage as exc:
             self.refused += 1
             log.warning("input from %s refused: %s", source, exc)
+            self._refuse_bad_control(source, payload, str(exc))
             return
         self.accepted += 1
         if isinstance(message, LookMessage):
@@ -103,12 +109,52 @@ class InputRouter:
         except OSError as exc:  # the game is restarting: inputs meanwhile are lost
             log.debug("game input socket: %s", exc)
 
+    def _report(self, result: ControlResult) -> None:
+        level = logging.INFO if result.accepted else logging.WARNING
+        log.log(level, "control %d from %s: %s%s", result.seq, result.source,
+                "accepted" if result.accepted else "refused",
+                f" ({result.reason})" if result.reason else "")  # fmt: skip
+        if self.on_control_result is not None:
+            self.on_control_result(result)
+
+    def _refuse_bad_control(self, source: str, payload: bytes, reason: str) -> None:
+        """A control request that failed validation still gets an answer, with its seq."""
+        try:
+            raw = json.loads(payload)
+        except ValueError:
+            return
+        if not isinstance(raw, dict) or raw.get("type") != "control":
+            return
+        seq = raw.get("seq")
+        if not isinstance(seq, int) or isinstance(seq, bool) or not 0 <= seq < 1 << 53:
+            seq = 0
+        self._report(ControlResult(seq=seq, source=source, accepted=False, reason=reason))
+
     def _control(self, source: str, message: ControlMessage) -> None:
+        requested = message.requested()
+        problems = [f"{name}: {why}" for name, why in NOT_AVAILABLE.items() if name in requested]
+        if not requested:
+            problems.append("empty control request: set upscaler and/or scale")
         if message.upscaler is not None:
             if message.upscaler not in registry.available():
-                log.warning("input from %s: unknown upscaler %r", source, message.upscaler)
-            elif self.worker_control is not None:
-                asyncio.get_running_loop().create_task(self._set_upscaler(message.upscaler))
+                problems.append(
+                    f"upscaler: unknown {message.upscaler!r}; available: "
+                    + ", ".join(registry.available())
+                )
+            elif self.worker_control is None:
+                problems.append("upscaler: this session has no worker control socket")
+        if problems:
+            # Nothing of a refused request is applied: a half-applied one is harder to read.
+            self._report(
+                ControlResult(
+                    seq=message.seq,
+                    source=source,
+                    accepted=False,
+                    reason="; ".join(problems),
+                    requested=requested,
+                )
+            )
+            return
         if message.scale is not None:
             # The game renders at display / scale from its next frame; the worker
             # upscales whatever size arrives, and the RESET flag restarts history.
@@ -116,8 +162,14 @@ class InputRouter:
             log.info("render scale %.3g requested by %s", message.scale, source)
             if self.on_scale_request is not None:
                 self.on_scale_request(message.scale)
+        result = ControlResult(seq=message.seq, source=source, accepted=True, requested=requested)
+        if message.upscaler is not None:
+            # The worker answers the switch; the result waits for its reply.
+            asyncio.get_running_loop().create_task(self._set_upscaler(message.upscaler, result))
+        else:
+            self._report(result)
 
-    async def _set_upscaler(self, name: str) -> None:
+    async def _set_upscaler(self, name: str, result: ControlResult) -> None:
         assert self.worker_control is not None
         loop = asyncio.get_running_loop()
         try:
@@ -126,6 +178,8 @@ class InputRouter:
             )
         except (OSError, TimeoutError) as exc:
             log.warning("upscaler switch to %s failed: %s", name, exc)
+            refused = f"upscaler: the worker did not answer ({exc})"
+            self._report(result.model_copy(update={"accepted": False, "reason": refused}))
             return
         if reply.get("ok"):
             log.info("upscaler switched to %s", name)
@@ -133,5 +187,8 @@ class InputRouter:
             self._to_game(InputMessage(jitter=registry.is_temporal(name)))
             if self.on_upscaler_set is not None:
                 self.on_upscaler_set(name)
+            self._report(result)
         else:
             log.warning("worker refused upscaler %s: %s", name, reply.get("error"))
+            refused = f"upscaler: the worker refused: {reply.get('error')}"
+            self._report(result.model_copy(update={"accepted": False, "reason": refused}))

@@ -18,6 +18,7 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 
 from server.game_input import MAX_LOOK_DEG, InputMessage
+from server.session.session_control import SessionControl
 
 MAX_MESSAGE_BYTES = 2048
 LOOK_DEG_PER_PX = 0.2  # drag right by 5 px: turn right by 1 degree
@@ -53,10 +54,10 @@ class KeysMessage(_Base):
     down: list[Annotated[str, Field(max_length=16)]] = Field(max_length=MAX_KEYS)
 
 
-class ControlMessage(_Base):
+class ControlMessage(_Base, SessionControl):
+    """A control request (server/session/session_control.py): its fields plus ``type``/``seq``."""
+
     type: Literal["control"]
-    upscaler: str | None = Field(default=None, max_length=64)
-    scale: float | None = Field(default=None, ge=1.0, le=4.0, allow_inf_nan=False)
 
 
 class KeyframeMessage(_Base):

@@ -1,0 +1,137 @@
+"""One game session's body, shared by ``upcast up`` and each session of ``upcast serve``.
+
+Starts the session's rings, game and worker (LocalStack), streams ring U to the
+relay (StreamingSession, in this process) with its ``status`` track, and
+watches it: a dead worker is restarted by the stack, a dead game ends the
+session with RuntimeError (``upcast serve`` then restarts the whole session).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from server.serve.status_reporter import StatusReporter
+    from server.session.runner import StreamingSession
+    from server.stack import LocalStack, SessionConfig
+    from server.stream_config import StreamConfig
+
+log = logging.getLogger(__name__)
+
+CHECK_INTERVAL_S = 0.5
+CONNECT_TIMEOUT_S = 30.0
+
+
+class SessionFailed(RuntimeError):
+    """The session could not start or stopped on its own; the message says why."""
+
+
+@dataclass(frozen=True)
+class SessionPlan:
+    config: SessionConfig
+    stream: StreamConfig  # broadcast, bitrate, keyframe interval
+    relay_url: str  # where to publish (a token, if any, already in its query)
+    metrics_port: int = 0  # the session's Prometheus port; 0 = off
+    cert_hash_hex: str | None = None  # pin the relay's certificate instead of fetching it
+    duration_s: float | None = None  # stop after this long (None: until stop is set)
+
+
+@dataclass
+class LiveSession:
+    """What callers see of a running session (in the on_up / on_tick callbacks)."""
+
+    plan: SessionPlan
+    stack: LocalStack
+    session: StreamingSession
+    status: StatusReporter
+    metrics_port: int  # 0 when off or the port was taken
+
+
+async def run_game_session(
+    plan: SessionPlan,
+    stop: asyncio.Event,
+    *,
+    on_up: Callable[[LiveSession], None],
+    on_tick: Callable[[LiveSession], None] | None = None,
+) -> None:
+    """Run until ``stop``, the duration, or a failure (raises SessionFailed / RuntimeError
+    / TimeoutError with a message for a person)."""
+    from prometheus_client import CollectorRegistry, start_http_server
+
+    from server.frame import Size
+    from server.serve.status_reporter import StatusReporter
+    from server.session.runner import StreamingSession, StreamSettings
+    from server.stack import LocalStack
+
+    loop = asyncio.get_running_loop()
+    config, stream = plan.config, plan.stream
+    stack = LocalStack(config)
+    session_task: asyncio.Task[None] | None = None
+    try:
+        await loop.run_in_executor(None, stack.start)
+        await loop.run_in_executor(None, stack.wait_ready)
+        assert stack.ring_u is not None
+        registry = CollectorRegistry()
+        metrics_port = plan.metrics_port
+        if metrics_port:
+            try:
+                start_http_server(metrics_port, registry=registry)
+            except OSError as exc:
+                log.warning("session metrics port %d unavailable: %s", metrics_port, exc)
+                metrics_port = 0
+        settings = StreamSettings(
+            relay_url=plan.relay_url,
+            broadcast=stream.broadcast,
+            fps=config.fps,
+            bitrate=None if stream.bitrate_kbps is None else stream.bitrate_kbps * 1000,
+            gop_seconds=stream.gop_seconds,
+            cert_hash_hex=plan.cert_hash_hex,
+            upscaler=config.upscaler,
+            scale=config.scale,
+        )
+        session = StreamingSession(
+            settings,
+            stack.ring_u,
+            Size.parse(config.display_size),
+            game_input=stack.input_path,
+            worker_control=stack.control_path,
+            registry=registry,
+            on_upscaler_set=stack.remember_upscaler,
+        )
+        status = StatusReporter(session)
+        session_task = asyncio.create_task(session.run(stop), name="session")
+        try:
+            async with asyncio.timeout(CONNECT_TIMEOUT_S):
+                await session.connected.wait()
+        except TimeoutError:
+            raise SessionFailed("the session could not publish to the relay") from None
+        live = LiveSession(plan, stack, session, status, metrics_port)
+        status.publish()
+        on_up(live)
+        deadline = None if plan.duration_s is None else time.monotonic() + plan.duration_s
+        while not stop.is_set():
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(CHECK_INTERVAL_S):
+                    await stop.wait()
+            stack.check_children()
+            status.tick()
+            if on_tick is not None:
+                on_tick(live)
+            if session_task.done():
+                session_task.result()  # surfaces the error
+                break
+            if deadline is not None and time.monotonic() >= deadline:
+                log.info("duration of %.0f s reached: stopping", plan.duration_s)
+                break
+    finally:
+        stop.set()
+        if session_task is not None:
+            with contextlib.suppress(Exception):
+                await session_task
+        stack.stop()

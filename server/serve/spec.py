@@ -1,0 +1,22 @@
+"""What the supervisor tells one session process: a JSON file it reads at start."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pydantic import BaseModel, ConfigDict
+
+from server.stack import SessionConfig
+from server.stream_config import StreamConfig
+
+
+class SessionSpec(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    index: int  # 1-based
+    config: SessionConfig  # its name is unique per start: rings and sockets never collide
+    stream: StreamConfig
+    relay_url: str  # with ?jwt=<token> when the supervisor minted one
+    cert_hash_hex: str | None = None
+    metrics_port: int = 0
+    status_path: Path  # the session writes its state here (atomically, twice a second)

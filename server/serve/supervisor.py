@@ -1,0 +1,216 @@
+"""The supervisor of ``upcast serve``: one OS process per session, restarted when it dies.
+
+Each session process runs in its own process group, so when one is killed
+(even with SIGKILL, when no cleanup of its own runs) the supervisor ends the
+game and worker it left behind and removes its rings and sockets, then starts
+it again after a backoff (1 s, doubling to 30 s; back to 1 s once a start
+stayed up for a minute). The other sessions share nothing with it but the
+relay, so they never notice.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from server.serve.spec import SessionSpec
+from server.serve.tokens import TokenMinter, no_token, with_token
+from server.stack import SessionConfig, session_files
+from server.stream_config import StreamConfig
+
+log = logging.getLogger(__name__)
+
+BACKOFF_MIN_S = 1.0
+BACKOFF_MAX_S = 30.0
+STABLE_AFTER_S = 60.0
+STATUS_STALE_S = 5.0  # a status file older than this: the session is hung or gone
+STOP_TIMEOUT_S = 15.0
+
+
+@dataclass
+class ServedSession:
+    index: int
+    config: SessionConfig  # its name is replaced by a fresh one at every start
+    stream: StreamConfig
+    metrics_port: int
+    status_path: Path
+    proc: subprocess.Popen[bytes] | None = None
+    name: str = ""  # the current start's session name (rings, sockets)
+    restarts: int = 0
+    started_at: float = 0.0
+    next_start_at: float | None = None  # set while waiting out a backoff
+    backoff_s: float = BACKOFF_MIN_S
+    last_exit: int | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def broadcast(self) -> str:
+        return self.stream.broadcast
+
+    def status(self) -> dict[str, Any]:
+        """The session process's own report (empty when there is none yet)."""
+        try:
+            record: dict[str, Any] = json.loads(self.status_path.read_text())
+        except (OSError, ValueError):
+            return {}
+        return record
+
+
+class Supervisor:
+    def __init__(
+        self,
+        sessions: list[ServedSession],
+        *,
+        relay_url: str,
+        cert_hash_hex: str | None = None,
+        token_for: TokenMinter = no_token,
+    ) -> None:
+        self.sessions = sessions
+        self.relay_url = relay_url
+        self.cert_hash_hex = cert_hash_hex
+        self.token_for = token_for
+        self._dir = Path(tempfile.mkdtemp(prefix="upcast-serve-"))
+        self._generation = 0
+
+    # -- lifecycle ------------------------------------------------------------------------
+
+    def start_all(self) -> None:
+        for s in self.sessions:
+            self._start(s)
+
+    def _start(self, s: ServedSession) -> None:
+        self._generation += 1
+        s.name = f"upcast-serve-{os.getpid()}-{s.index}-{self._generation}"
+        spec = SessionSpec(
+            index=s.index,
+            config=s.config.model_copy(update={"name": s.name}),
+            stream=s.stream,
+            relay_url=with_token(self.relay_url, self.token_for(s.broadcast)),
+            cert_hash_hex=self.cert_hash_hex,
+            metrics_port=s.metrics_port,
+            status_path=s.status_path,
+        )
+        spec_path = self._dir / f"session-{s.index}.json"
+        spec_path.write_text(spec.model_dump_json())
+        s.status_path.unlink(missing_ok=True)
+        # Its own process group: the game and worker it starts go with it (see _reap).
+        s.proc = subprocess.Popen(
+            [sys.executable, "-m", "server.serve.session_process", str(spec_path)],
+            start_new_session=True,
+        )
+        s.started_at = time.monotonic()
+        s.next_start_at = None
+        log.info("session %d (%s): pid %d", s.index, s.broadcast, s.proc.pid)
+
+    def check(self) -> None:
+        """Notice dead session processes and restart them after their backoff."""
+        now = time.monotonic()
+        for s in self.sessions:
+            if s.proc is not None and s.proc.poll() is not None:
+                s.last_exit = s.proc.returncode
+                self._reap(s)
+                s.proc = None
+                if now - s.started_at >= STABLE_AFTER_S:
+                    s.backoff_s = BACKOFF_MIN_S
+                s.restarts += 1
+                s.next_start_at = now + s.backoff_s
+                log.warning(
+                    "session %d (%s) exited with code %s; restart #%d in %.0f s",
+                    s.index, s.broadcast, s.last_exit, s.restarts, s.backoff_s,
+                )  # fmt: skip
+                s.backoff_s = min(BACKOFF_MAX_S, s.backoff_s * 2)
+            elif s.proc is None and s.next_start_at is not None and now >= s.next_start_at:
+                self._start(s)
+
+    def relay_restarted(self) -> None:
+        """Tell every session to reconnect at once (SIGUSR1, see session_process.py)."""
+        for s in self.sessions:
+            # A status file exists only once the process handles SIGUSR1 (else it would die).
+            if s.proc is not None and s.proc.poll() is None and s.status():
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(s.proc.pid, signal.SIGUSR1)
+
+    def _reap(self, s: ServedSession) -> None:
+        """End what a dead session process left behind: its game, its worker, its files."""
+        assert s.proc is not None
+        with contextlib.suppress(ProcessLookupError, PermissionError):
+            os.killpg(s.proc.pid, signal.SIGKILL)
+        for path in session_files(s.name):
+            path.unlink(missing_ok=True)
+
+    def stop_all(self) -> None:
+        running = [s for s in self.sessions if s.proc is not None and s.proc.poll() is None]
+        for s in running:
+            assert s.proc is not None
+            s.proc.terminate()
+        deadline = time.monotonic() + STOP_TIMEOUT_S
+        for s in running:
+            assert s.proc is not None
+            try:
+                s.proc.wait(max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                log.warning("session %d did not stop in time: killed", s.index)
+        for s in self.sessions:
+            if s.proc is not None:
+                self._reap(s)
+                with contextlib.suppress(subprocess.TimeoutExpired):
+                    s.proc.wait(5)
+            s.proc = None
+            s.next_start_at = None
+        for path in self._dir.iterdir():
+            path.unlink(missing_ok=True)
+        with contextlib.suppress(OSError):
+            self._dir.rmdir()
+
+    # -- reporting ------------------------------------------------------------------------
+
+    def state_of(self, s: ServedSession, status: dict[str, Any]) -> str:
+        if s.proc is None:
+            return "restarting" if s.next_start_at is not None else "stopped"
+        state = str(status.get("state", "starting"))
+        if state == "up" and time.time() - float(status.get("updated", 0)) > STATUS_STALE_S:
+            return "stalled"
+        return state
+
+    def snapshot(self) -> list[dict[str, Any]]:
+        """One dict per session: what ``GET /sessions`` answers."""
+        out = []
+        for s in self.sessions:
+            status = s.status() if s.proc is not None else {}
+            out.append(
+                {
+                    "index": s.index,
+                    "name": s.name,
+                    "broadcast": s.broadcast,
+                    "pid": None if s.proc is None else s.proc.pid,
+                    "state": self.state_of(s, status),
+                    "restarts": s.restarts,
+                    "last_exit": s.last_exit,
+                    "worker_pid": status.get("worker_pid"),
+                    "game_pid": status.get("game_pid"),
+                    "worker_restarts": status.get("worker_restarts", 0),
+                    "fps": status.get("fps", 0.0),
+                    "frames": status.get("frames", 0),
+                    # When the session counted ``frames`` (wall clock): rates from these
+                    # two are exact, whenever /sessions is read.
+                    "frames_at": status.get("updated"),
+                    "upscaler": status.get("upscaler", s.config.upscaler),
+                    "scale": status.get("scale", round(s.config.scale, 3)),
+                    "target_fps": s.config.fps,
+                    "metrics_port": status.get("metrics_port", 0),
+                }
+            )
+        return out
+
+    def all_up(self) -> bool:
+        return all(row["state"] == "up" for row in self.snapshot())

@@ -1,0 +1,76 @@
+"""The control API's models: what a control request may ask, and what a session answers.
+
+Control rides MoQ (the lead's decision for issue 7): a request is a ``control``
+frame on a viewer input track ``<broadcast>/input/<id>`` (the page's controls
+and ``upcast control`` send the same thing), and the answer is the session's
+``status`` track. A session may sit behind any moq-lite relay or CDN with no
+inbound HTTP route to it, the browser already holds that connection, and the
+relay's token model covers publishing there. ``docs/control.schema.json`` is
+generated from these models (``python -m server.serve.control_schema``).
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+STATUS_TRACK = "status"
+# Fields a request may carry that this build validates but cannot apply yet.
+NOT_AVAILABLE = {
+    "cache_policy": "not available in this build (the upscaler cache lands with issue 5)",
+    "frame_generation": "not available in this build (frame generation lands with issue 6)",
+}
+
+
+class SessionControl(BaseModel):
+    """What a control request may change; fields left out stay as they are."""
+
+    upscaler: str | None = Field(
+        default=None, max_length=64, description="upscaler method to switch the worker to"
+    )
+    scale: float | None = Field(
+        default=None,
+        ge=1.0,
+        le=4.0,
+        allow_inf_nan=False,
+        description="display / render size; the game renders smaller from its next frame",
+    )
+    cache_policy: Literal["off", "reuse", "aggressive"] | None = Field(
+        default=None, description="upscaler cache policy (refused: not available in this build)"
+    )
+    frame_generation: bool | None = Field(
+        default=None, description="predict frames between rendered ones (refused: not available)"
+    )
+
+    def requested(self) -> dict[str, object]:
+        """The fields this request sets."""
+        return self.model_dump(exclude_none=True, include=set(SessionControl.model_fields))
+
+
+class ControlResult(BaseModel):
+    """The outcome of one control request, as the status track reports it."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    seq: int = Field(description="the request's seq (the sender picks it)")
+    source: str = Field(description="the input broadcast that sent the request")
+    accepted: bool
+    reason: str | None = Field(default=None, description="why it was refused")
+    requested: dict[str, object] = Field(default_factory=dict, description="what it asked")
+
+
+class StatusRecord(BaseModel):
+    """One frame of the ``status`` track: a new group per change, so a late
+    subscriber gets the current state at once."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    broadcast: str
+    upscaler: str | None = Field(description="the method the worker runs now")
+    scale: float | None = Field(description="display / render size now")
+    fps: float = Field(description="frames per second the session publishes (rolling)")
+    frames: int = Field(description="frames published since the session started")
+    last_control: ControlResult | None = Field(
+        default=None, description="the result of the last control request"
+    )
