@@ -170,6 +170,11 @@ def worker_registry(worker: UpscaleWorker) -> CollectorRegistry:
 
 def serve_metrics(registry: CollectorRegistry, port: int, what: str) -> None:
     """Expose ``registry`` on ``port`` (0: off) at ``/metrics`` in a daemon thread."""
-    if port:
+    if not port:
+        return
+    try:
         start_http_server(port, registry=registry)
-        log.info("%s metrics on http://0.0.0.0:%d/metrics", what, port)
+    except OSError as exc:  # a taken port costs the metrics, never the game or the worker
+        log.warning("%s metrics port %d unavailable: %s", what, port, exc)
+        return
+    log.info("%s metrics on http://0.0.0.0:%d/metrics", what, port)

@@ -98,8 +98,16 @@ def session_files(name: str) -> list[Path]:
 class LocalStack:
     """Owns the rings and the child processes of one session."""
 
-    def __init__(self, config: SessionConfig, *, game_duration_s: float | None = None) -> None:
+    def __init__(
+        self,
+        config: SessionConfig,
+        *,
+        game_duration_s: float | None = None,
+        metrics_ports: tuple[int, int] = (0, 0),
+    ) -> None:
+        """``metrics_ports``: the game's and the worker's Prometheus ports (0: off)."""
         self.config = config
+        self.game_metrics_port, self.worker_metrics_port = metrics_ports
         self.ring_r_name = f"{config.name}-r"
         self.ring_u_name = f"{config.name}-u"
         self.control_path = Path(tempfile.gettempdir()) / f"{config.name}.ctl"
@@ -129,6 +137,8 @@ class LocalStack:
         ]  # fmt: skip
         if self._game_duration_s is not None:
             game_args += ["--duration", f"{self._game_duration_s:g}"]
+        if self.game_metrics_port:
+            game_args += ["--metrics-port", str(self.game_metrics_port)]
         self.game = subprocess.Popen(_cli(*game_args), env=_child_env())
         log.info("session %s: game pid %d, worker pid %d", c.name, self.game.pid, self.worker.pid)
 
@@ -149,6 +159,8 @@ class LocalStack:
                 str(self.control_path),
                 "--threads",
                 str(c.worker_threads),
+                "--metrics-port",
+                str(self.worker_metrics_port),
             )
         )
 

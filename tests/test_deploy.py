@@ -26,6 +26,7 @@ import yaml
 from prometheus_client import CollectorRegistry
 
 from server.cli import COMMANDS, build_parser
+from server.commands.serve import METRICS_PORTS_PER_SESSION
 from server.serve.http_api import ServeHttp
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -246,6 +247,7 @@ def test_ports_agree_between_flags_mappings_health_checks_and_prometheus() -> No
     assert str(relay_health.port) == relay_port
     session_argv = compose_argv("session")
     http_port = flag(session_argv, "--http-port")
+    sessions = int(flag(session_argv, "--sessions"))
     assert all_services["session"]["expose"] == [http_port]
     session_health = urllib.parse.urlsplit(all_services["session"]["healthcheck"]["test"][-1])
     assert str(session_health.port) == http_port
@@ -256,12 +258,19 @@ def test_ports_agree_between_flags_mappings_health_checks_and_prometheus() -> No
 
     scrape = load_yaml(ROOT / "deploy" / "prometheus" / "prometheus.yml")
     targets = {
-        job["job_name"]: target
+        job["job_name"]: sorted(target for c in job["static_configs"] for target in c["targets"])
         for job in scrape["scrape_configs"]
-        for config in job["static_configs"]
-        for target in config["targets"]
     }
-    assert targets == {"relay": f"relay:{relay_port}", "session": f"session:{http_port}"}
+    # serve's port scheme (server/commands/serve.py): session i's block of three ports
+    # (session, game, worker) starts at http-port + 3i - 2.
+    blocks = [int(http_port) + 1 + METRICS_PORTS_PER_SESSION * i for i in range(sessions)]
+    assert targets == {
+        "relay": [f"relay:{relay_port}"],
+        "serve": [f"session:{http_port}"],
+        "session": [f"session:{b}" for b in blocks],
+        "game": [f"session:{b + 1}" for b in blocks],
+        "worker": [f"session:{b + 2}" for b in blocks],
+    }
 
 
 def test_the_key_file_is_made_once_and_shared() -> None:

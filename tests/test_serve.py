@@ -147,6 +147,16 @@ def test_four_sessions_publish_and_are_listed(four: Served) -> None:
     assert status == 200 and body.count(b"upcast_serve_session_up{") == 4
     assert four.get("/healthz")[0] == 200
     assert four.get("/nope")[0] == 404
+    # Every process of a session has its own metrics: the session, then its game and worker.
+    for row in rows:
+        port = int(row["metrics_port"])
+        for offset, metric in (
+            (0, b"upcast_fps{"),
+            (1, b"upcast_game_frames_rendered_total"),
+            (2, b"upcast_worker_frames_upscaled_total"),
+        ):
+            with urllib.request.urlopen(f"http://127.0.0.1:{port + offset}/metrics") as r:
+                assert metric in r.read(), (row["broadcast"], offset)
 
 
 @pytest.mark.slow

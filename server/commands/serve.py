@@ -30,6 +30,7 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 CHECK_INTERVAL_S = 0.5
+METRICS_PORTS_PER_SESSION = 3  # session, game, worker
 ALL_UP_TIMEOUT_S = 180.0
 
 
@@ -52,7 +53,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=int,
         default=None,
         help="TCP port of /sessions, /metrics, /healthz (default: relay port + 1); "
-        "session i's Prometheus metrics are on http-port + i",
+        "session i's Prometheus metrics are on http-port + 3i - 2, its game's and "
+        "worker's on the next two ports",
     )
     parser.add_argument("--bitrate-kbps", type=int, default=None, help="video bitrate")
     parser.add_argument("--gop-seconds", type=float, default=2.0, help="keyframe interval")
@@ -115,7 +117,7 @@ def _sessions(args: argparse.Namespace) -> list[ServedSession] | None:
             index=i,
             config=config,
             stream=session_stream,
-            metrics_port=http_port + i if http_port else 0,
+            metrics_port=http_port + 1 + METRICS_PORTS_PER_SESSION * (i - 1) if http_port else 0,
             status_path=status_dir / f"session-{i}.status.json",
         )
         for i, (config, session_stream) in enumerate(configs, start=1)

@@ -37,7 +37,9 @@ class SessionPlan:
     config: SessionConfig
     stream: StreamConfig  # broadcast, bitrate, keyframe interval
     relay_url: str  # where to publish (a token, if any, already in its query)
-    metrics_port: int = 0  # the session's Prometheus port; 0 = off
+    # The session's Prometheus port; the game's and the worker's are the next two
+    # (one block of three per session). 0 = all off.
+    metrics_port: int = 0
     cert_hash_hex: str | None = None  # pin the relay's certificate instead of fetching it
     duration_s: float | None = None  # stop after this long (None: until stop is set)
 
@@ -71,7 +73,8 @@ async def run_game_session(
 
     loop = asyncio.get_running_loop()
     config, stream = plan.config, plan.stream
-    stack = LocalStack(config)
+    ports = (plan.metrics_port + 1, plan.metrics_port + 2) if plan.metrics_port else (0, 0)
+    stack = LocalStack(config, metrics_ports=ports)
     session_task: asyncio.Task[None] | None = None
     try:
         await loop.run_in_executor(None, stack.start)
