@@ -8,14 +8,20 @@ from __future__ import annotations
 from pydantic import BaseModel
 from pydantic_core import PydanticUndefined
 
+from server.relay_settings import RelaySettings
+from server.serve.config import SessionOverride
+from server.session.session_control import SessionControl
 from server.stack import SessionConfig
 from server.stream_config import StreamConfig
 from server.worker import WorkerConfig
 
 DOCUMENTED: tuple[tuple[str, type[BaseModel]], ...] = (
-    ("upcast up (SessionConfig)", SessionConfig),
+    ("upcast up / serve, the game session (SessionConfig)", SessionConfig),
     ("upcast up, streaming (StreamConfig)", StreamConfig),
+    ("upcast serve --config, one entry per session (SessionOverride)", SessionOverride),
+    ("upcast relay (RelaySettings; flags are the field names with dashes)", RelaySettings),
     ("upcast worker (WorkerConfig)", WorkerConfig),
+    ("control request, run time (SessionControl; docs/control.schema.json)", SessionControl),
 )
 
 

@@ -18,6 +18,7 @@ from server.moq.limits import IngressLimits
 if TYPE_CHECKING:
     from server.auth import Authorizer
     from server.quic.certs import CertBundle
+    from server.relay_settings import RelaySettings
 
 log = logging.getLogger(__name__)
 
@@ -85,101 +86,78 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--ready-file", type=Path, default=None, help=argparse.SUPPRESS)
 
 
-def _problem(args: argparse.Namespace) -> str | None:
-    if not 0 <= args.port <= 65535:
-        return f"--port must be 0..65535, got {args.port}"
-    if (args.cert is None) != (args.key is None):
-        return "--cert and --key go together"
-    if args.max_backlog_kib < 16:
-        return f"--max-backlog-kib must be at least 16, got {args.max_backlog_kib}"
-    if args.max_latency_ms < 0:
-        return f"--max-latency-ms must be >= 0, got {args.max_latency_ms}"
-    if args.max_sessions < 1:
-        return f"--max-sessions must be positive, got {args.max_sessions}"
-    if args.auth_key is None and not args.no_auth:
-        return (
-            "no --auth-key: anyone could publish. Make a key with"
-            " `upcast token generate --key PATH` and pass --auth-key PATH,"
-            " or pass --no-auth for an open relay (local development only)"
-        )
-    if args.auth_key is not None and args.no_auth:
-        return "--auth-key and --no-auth exclude each other"
-    if args.viewer_upload_kib_s < 1:
-        return f"--viewer-upload-kib-s must be positive, got {args.viewer_upload_kib_s}"
-    if args.publisher_upload_mib_s < 1:
-        return f"--publisher-upload-mib-s must be positive, got {args.publisher_upload_mib_s}"
-    if args.web_root is not None and not (args.web_root / "index.html").is_file():
-        return (
-            f"--web-root {args.web_root} has no index.html"
-            " (build it: cd client_web && npm ci && npm run build)"
-        )
-    return None
+def _settings(args: argparse.Namespace) -> RelaySettings | None:
+    """The flags as a RelaySettings, or None after printing which field is wrong."""
+    from server.config_errors import validated
+    from server.relay_settings import RelaySettings
+
+    fields = {name: getattr(args, name) for name in RelaySettings.model_fields}
+    return validated(RelaySettings, "relay", **fields)
 
 
-def _authorizer(args: argparse.Namespace) -> Authorizer:
+def _authorizer(settings: RelaySettings) -> Authorizer:
     """Raises KeyFileError (it names the file) for a missing or malformed key."""
     from server.auth import Authorizer, load_key
 
-    if args.no_auth:
+    if settings.auth_key is None:
         log.warning("relay: --no-auth: anyone may publish and send inputs")
         return Authorizer.open_relay()
-    return Authorizer(load_key(args.auth_key), public_viewers=args.public_viewers)
+    return Authorizer(load_key(settings.auth_key), public_viewers=settings.public_viewers)
 
 
 def run(args: argparse.Namespace) -> int:
     from server.auth import KeyFileError
 
-    problem = _problem(args)
-    if problem is not None:
-        print(f"upcast relay: {problem}", file=sys.stderr)
+    settings = _settings(args)
+    if settings is None:
         return 2
     try:
-        args.authorizer = _authorizer(args)
+        authorizer = _authorizer(settings)
     except KeyFileError as exc:
         print(f"upcast relay: --auth-key: {exc}", file=sys.stderr)
         return 2
     from server.event_loop import install_uvloop
 
     install_uvloop()
-    return asyncio.run(_main(args))
+    return asyncio.run(_main(args, settings, authorizer))
 
 
-async def _main(args: argparse.Namespace) -> int:
+async def _main(args: argparse.Namespace, settings: RelaySettings, auth: Authorizer) -> int:
     from server.quic.certs import generate_cert, load_cert
 
     with tempfile.TemporaryDirectory(prefix="upcast-cert-") as cert_dir:
         # A generated key lives only as long as this relay: never left in /tmp.
-        cert = load_cert(args.cert, args.key) if args.cert else generate_cert(directory=cert_dir)
-        return await _serve(args, cert)
+        if settings.cert is not None and settings.key is not None:
+            cert = load_cert(settings.cert, settings.key)
+        else:
+            cert = generate_cert(directory=cert_dir)
+        return await _serve(args, settings, auth, cert)
 
 
-async def _serve(args: argparse.Namespace, cert: CertBundle) -> int:
+async def _serve(
+    args: argparse.Namespace, settings: RelaySettings, auth: Authorizer, cert: CertBundle
+) -> int:
     from server.relay import Relay, RelayConfig
 
-    web_root = args.web_root
+    web_root = settings.web_root
     if web_root is None and (WEB_ROOT / "index.html").is_file():
         web_root = WEB_ROOT
     config = RelayConfig(
-        host=args.host,
-        port=args.port,
+        host=settings.host,
+        port=settings.port,
         web_root=web_root,
-        max_backlog_bytes=args.max_backlog_kib * 1024,
-        default_max_latency_ms=args.max_latency_ms,
-        max_connections=args.max_sessions,
-        authorizer=args.authorizer,
-        ingress=IngressLimits(
-            viewer_bytes_per_s=args.viewer_upload_kib_s * 1024,
-            viewer_burst_bytes=4 * args.viewer_upload_kib_s * 1024,
-            publisher_bytes_per_s=args.publisher_upload_mib_s * 1024 * 1024,
-            publisher_burst_bytes=args.publisher_upload_mib_s * 1024 * 1024,
-        ),
+        max_backlog_bytes=settings.max_backlog_kib * 1024,
+        default_max_latency_ms=settings.max_latency_ms,
+        max_connections=settings.max_sessions,
+        authorizer=auth,
+        ingress=settings.ingress(),
     )
     relay = Relay(config, cert)
     try:
         await relay.start()
     except OSError as exc:
         print(
-            f"upcast relay: cannot listen on port {args.port}: {exc.strerror or exc}",
+            f"upcast relay: cannot listen on port {settings.port}: {exc.strerror or exc}",
             file=sys.stderr,
         )
         return 1
@@ -187,7 +165,7 @@ async def _serve(args: argparse.Namespace, cert: CertBundle) -> int:
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, stop.set)
-    host = "localhost" if args.host in ("::", "0.0.0.0", "") else args.host
+    host = "localhost" if settings.host in ("::", "0.0.0.0", "") else settings.host
     print(
         f"upcast relay: listening on port {relay.port}; certificate sha256 {cert.sha256_hex}; "
         f"page http://{host}:{relay.port}/ ; metrics http://{host}:{relay.port}/metrics",

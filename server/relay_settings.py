@@ -1,0 +1,82 @@
+"""What ``upcast relay`` is told on its command line, validated at start.
+
+Errors name the field (``invalid relay configuration: max_backlog_kib: ...``); the
+README's configuration reference is generated from this model.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from server.moq.limits import IngressLimits
+
+_DEFAULT_INGRESS = IngressLimits()
+
+
+class RelaySettings(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    host: str = Field(default="::", description="address to bind (`::` = all, dual stack)")
+    port: int = Field(default=4443, ge=0, le=65535, description="UDP (QUIC) and TCP (HTTP) port")
+    web_root: Path | None = Field(
+        default=None, description="built web client to serve (default: client_web/dist if built)"
+    )
+    cert: Path | None = Field(default=None, description="certificate PEM (default: generated)")
+    key: Path | None = Field(default=None, description="private key PEM of `cert`")
+    max_backlog_kib: int = Field(
+        default=2048, ge=16, description="queued for one viewer before it skips ahead (KiB)"
+    )
+    max_latency_ms: int = Field(
+        default=500,
+        ge=0,
+        description="lag after which a viewer skips to the newest group (0: backlog only)",
+    )
+    max_sessions: int = Field(default=1000, ge=1, description="sessions open at once")
+    auth_key: Path | None = Field(
+        default=None, description="JWK key file tokens are verified with (`upcast token generate`)"
+    )
+    public_viewers: bool = Field(
+        default=True, description="sessions without a token may watch (never publish)"
+    )
+    no_auth: bool = Field(
+        default=False, description="open relay for local development: anyone may publish"
+    )
+    viewer_upload_kib_s: int = Field(
+        default=_DEFAULT_INGRESS.viewer_bytes_per_s // 1024,
+        ge=1,
+        description="upload rate of a session without publish rights before it is closed (KiB/s)",
+    )
+    publisher_upload_mib_s: int = Field(
+        default=_DEFAULT_INGRESS.publisher_bytes_per_s // (1024 * 1024),
+        ge=1,
+        description="upload rate of a publishing session before it is closed (MiB/s)",
+    )
+
+    @model_validator(mode="after")
+    def _consistent(self) -> RelaySettings:
+        if (self.cert is None) != (self.key is None):
+            raise ValueError("cert and key go together")
+        if self.auth_key is None and not self.no_auth:
+            raise ValueError(
+                "no auth_key: anyone could publish. Make a key with `upcast token generate"
+                " --key PATH` and pass --auth-key PATH, or pass --no-auth for an open relay"
+                " (local development only)"
+            )
+        if self.auth_key is not None and self.no_auth:
+            raise ValueError("auth_key and no_auth exclude each other")
+        if self.web_root is not None and not (self.web_root / "index.html").is_file():
+            raise ValueError(
+                f"web_root {self.web_root} has no index.html"
+                " (build it: cd client_web && npm ci && npm run build)"
+            )
+        return self
+
+    def ingress(self) -> IngressLimits:
+        return IngressLimits(
+            viewer_bytes_per_s=self.viewer_upload_kib_s * 1024,
+            viewer_burst_bytes=4 * self.viewer_upload_kib_s * 1024,
+            publisher_bytes_per_s=self.publisher_upload_mib_s * 1024 * 1024,
+            publisher_burst_bytes=self.publisher_upload_mib_s * 1024 * 1024,
+        )
