@@ -77,7 +77,7 @@ def run_cli(argv: list[str], env_format: str | None) -> subprocess.CompletedProc
 
 def relay_argv() -> list[str]:
     """A relay on a free port that logs its start and stop, then exits by itself."""
-    return ["relay", "--host", "127.0.0.1", "--port", "0", "--duration", "0.2"]
+    return ["relay", "--no-auth", "--host", "127.0.0.1", "--port", "0", "--duration", "0.2"]
 
 
 def test_a_process_logs_json_lines_from_the_flag_or_the_environment() -> None:

@@ -18,16 +18,20 @@ import asyncio
 import contextlib
 import logging
 import sys
+import tempfile
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlencode
 
 import numpy as np
 import numpy.typing as npt
 
+from server.auth import generate_key, load_key
+from server.auth.minting import session_tokens
 from server.bench.report import BenchReport
 from server.browser_paths import CHROMIUM, CHROMIUM_ARGS, WEB_ROOT
 from server.frame import Size
@@ -74,7 +78,13 @@ class LiveStack:
     ) -> None:
         self.config = config
         self.broadcast = broadcast
-        self.relay = RelayProcess("::", port, web_root)
+        # A relay that checks tokens, as upcast up runs it: the session publishes with
+        # its publisher token, the page sends inputs with the player's.
+        self._key_dir = tempfile.TemporaryDirectory(prefix="upcast-livestack-key-")
+        key_path = Path(self._key_dir.name) / "relay.jwk"
+        generate_key(key_path)
+        self.tokens = session_tokens(load_key(key_path), broadcast)
+        self.relay = RelayProcess("::", port, web_root, auth_key=key_path)
         self.stack = LocalStack(config)
         self.endpoint: RelayEndpoint | None = None
         self.session: StreamingSession | None = None
@@ -93,8 +103,8 @@ class LiveStack:
 
     def player_url(self, **query: str) -> str:
         """The player page the relay serves (a secure context: localhost)."""
-        params = {"broadcast": self.broadcast, **query}
-        return f"http://localhost:{self.port}/?" + "&".join(f"{k}={v}" for k, v in params.items())
+        params = {"broadcast": self.broadcast, "jwt": self.tokens.player, **query}
+        return f"http://localhost:{self.port}/?" + urlencode(params)
 
     def start(self, timeout_s: float = CONNECT_TIMEOUT_S) -> LiveStack:
         try:
@@ -128,6 +138,7 @@ class LiveStack:
         self._stop = asyncio.Event()
         settings = StreamSettings(
             relay_url=f"http://127.0.0.1:{self.endpoint.port}/",
+            token=self.tokens.publisher,
             broadcast=self.broadcast,
             fps=self.config.fps,
             bitrate=self._bitrate,
@@ -162,6 +173,7 @@ class LiveStack:
             self._thread.join(10.0)
         self.stack.stop()
         self.relay.stop()
+        self._key_dir.cleanup()
 
     def __enter__(self) -> LiveStack:
         return self.start()
