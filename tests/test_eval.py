@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from server.cli import main
-from server.eval.upscalers import must_show_checks
+from server.eval.upscalers import _frames_per_method, must_show_checks
+from server.frame import Size
 from upscalers import metrics
 
 
@@ -99,3 +100,16 @@ def test_eval_command_writes_report_table_and_plot(tmp_path: Path) -> None:
 def test_eval_refuses_unknown_names(tmp_path: Path) -> None:
     with pytest.raises(SystemExit, match="allowed"):
         main(["eval", "upscalers", "--json", str(tmp_path / "x.json"), "--methods", "magic"])
+
+
+def test_spatial_methods_get_unjittered_frames_temporal_jittered() -> None:
+    # What the pipeline sends: the game jitters only for temporal upscalers.
+    times = [0.0, 1 / 60, 2 / 60]
+    frames = _frames_per_method("static", Size(32, 18), 2.0, times, ["bicubic", "temporal"])
+    assert all(f.meta.jitter == (0.0, 0.0) for f in frames["bicubic"])
+    assert any(f.meta.jitter != (0.0, 0.0) for f in frames["temporal"])
+    # Same scene at the same times: the unjittered and jittered renders stay close.
+    diff = np.abs(
+        frames["bicubic"][2].color.astype(int) - frames["temporal"][2].color.astype(int)
+    ).mean()
+    assert diff < 20

@@ -1,11 +1,15 @@
 """``upcast eval upscalers``: every method's speed against its error, per scene and scale.
 
 For each scene the game renders a run of frames at each scale's render size
-(jittered, as a game feeding a temporal upscaler would) and the ground truth
-at display size (unjittered, supersampled) for the measured frames. Methods
-run interleaved frame by frame in one process, each through its own
-UpscalerHost (the worker's code path), so timings compare like with like and
-temporal methods see the frames in order. Quality is measured on the frames
+and the ground truth at display size (unjittered, supersampled) for the
+measured frames. Each method gets the frames the game would send it in the
+real pipeline (``registry.is_temporal``, the game's ``--jitter/--no-jitter``):
+temporal methods the jittered renders they accumulate, spatial methods the
+unjittered ones (jitter without accumulation is only shimmer). Both runs of
+frames show the same scene at the same times and are scored against the same
+ground truth. Methods run interleaved frame by frame in one process, each
+through its own UpscalerHost (the worker's code path), so timings compare like
+with like and temporal methods see the frames in order. Quality is measured on the frames
 after a warm-up that lets temporal history build up; FLIP, which costs seconds
 per frame on a CPU, is computed on the last ``--flip-frames`` of them.
 """
@@ -87,13 +91,29 @@ def _start_time(scene: str, measure_from: int, fps: float) -> float:
     return max(0.0, cuts[0] - (measure_from - 0.5) / fps) if cuts else 0.0
 
 
-def _render_frames(scene: str, render: Size, scale: float, times: list[float]) -> list[RenderFrame]:
-    renderer = Renderer(scene, render, scale=scale)
+def _render_frames(
+    scene: str, render: Size, scale: float, times: list[float], jitter: bool
+) -> list[RenderFrame]:
+    renderer = Renderer(scene, render, scale=scale, jitter=jitter)
     return [renderer.render(i, t, RenderTargets.allocate(render)) for i, t in enumerate(times)]
 
 
+def _frames_per_method(
+    scene: str, render: Size, scale: float, times: list[float], methods: list[str]
+) -> dict[str, list[RenderFrame]]:
+    """What the game sends each method: jittered frames to temporal ones only."""
+    runs: dict[bool, list[RenderFrame]] = {}
+    out = {}
+    for m in methods:
+        jitter = registry.is_temporal(m)
+        if jitter not in runs:
+            runs[jitter] = _render_frames(scene, render, scale, times, jitter)
+        out[m] = runs[jitter]
+    return out
+
+
 def _evaluate_scale(
-    frames: list[RenderFrame],
+    frames: dict[str, list[RenderFrame]],
     truth: dict[int, npt.NDArray[np.uint8]],
     methods: list[str],
     display: Size,
@@ -101,10 +121,11 @@ def _evaluate_scale(
 ) -> dict[str, CaseResult]:
     hosts = {m: UpscalerHost(m, display) for m in methods}
     results = {m: CaseResult() for m in methods}
-    for i, frame in enumerate(frames):
+    for i in range(len(next(iter(frames.values())))):
         # Rotate the order each frame so no method always runs with warm or cold caches.
         order = methods[i % len(methods) :] + methods[: i % len(methods)]
         for m in order:
+            frame = frames[m][i]
             t0 = time.perf_counter_ns()
             image = to_uint8(hosts[m].upscale(frame))
             results[m].times_ms.append((time.perf_counter_ns() - t0) / 1e6)
@@ -142,6 +163,8 @@ def run(args: argparse.Namespace) -> int:
             "reference": f"game ground truth at {display}, unjittered, "
             f"{args.supersample}x{args.supersample} supersampled",
             "threads": args.threads,
+            "inputs": "as in the pipeline: temporal methods get jittered renders "
+            "(Halton 2,3), spatial methods unjittered ones; same times, same ground truth",
         },
     )
     measured = list(range(args.measure_from, args.frames))
@@ -161,7 +184,7 @@ def run(args: argparse.Namespace) -> int:
         for scale in scales:
             step += 1
             render = Size(round(display.width / scale), round(display.height / scale))
-            frames = _render_frames(scene, render, scale, times)
+            frames = _frames_per_method(scene, render, scale, times, methods)
             with_flip = scale in flip_scales
             results = _evaluate_scale(
                 frames, truth, methods, display, flip_from if with_flip else None
