@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from server.cli import main
+from server.eval.methods import parse_method
 from server.eval.upscalers import _frames_per_method, must_show_checks
 from server.frame import Size
 from upscalers import metrics
@@ -105,7 +106,8 @@ def test_eval_refuses_unknown_names(tmp_path: Path) -> None:
 def test_spatial_methods_get_unjittered_frames_temporal_jittered() -> None:
     # What the pipeline sends: the game jitters only for temporal upscalers.
     times = [0.0, 1 / 60, 2 / 60]
-    frames = _frames_per_method("static", Size(32, 18), 2.0, times, ["bicubic", "temporal"])
+    specs = [parse_method("bicubic"), parse_method("temporal")]
+    frames = _frames_per_method("static", Size(32, 18), 2.0, times, specs)
     assert all(f.meta.jitter == (0.0, 0.0) for f in frames["bicubic"])
     assert any(f.meta.jitter != (0.0, 0.0) for f in frames["temporal"])
     # Same scene at the same times: the unjittered and jittered renders stay close.
@@ -113,3 +115,28 @@ def test_spatial_methods_get_unjittered_frames_temporal_jittered() -> None:
         frames["bicubic"][2].color.astype(int) - frames["temporal"][2].color.astype(int)
     ).mean()
     assert diff < 20
+
+
+def test_method_labels_carry_rcas_sharpness() -> None:
+    spec = parse_method("easu_rcas@1.5")
+    assert (spec.name, spec.options) == ("easu_rcas", {"sharpness": 1.5})
+    with pytest.raises(ValueError, match="no option sharpness"):
+        parse_method("bicubic@1")
+    with pytest.raises(ValueError, match="must be a number"):
+        parse_method("easu_rcas@sharp")
+    with pytest.raises(ValueError, match=">= 0 stops"):
+        parse_method("easu_rcas@-1")
+
+
+def test_sharpness_sweep_adds_easu_rcas_variants(tmp_path: Path) -> None:
+    out = tmp_path / "sweep.json"
+    code = main(
+        ["eval", "upscalers", "--json", str(out), "--scenes", "static", "--scales", "2",
+         "--methods", "easu", "--rcas-sharpness", "0,2", "--frames", "2", "--measure-from", "1",
+         "--flip-frames", "0", "--display-size", "64x36", "--supersample", "1"]
+    )  # fmt: skip
+    assert code == 0
+    cases = {c["method"]: c for c in json.loads(out.read_text())["cases"]}
+    assert set(cases) == {"easu", "easu_rcas@0", "easu_rcas@2"}
+    # Distinct methods, not one run three times: the strongest sharpening moves furthest.
+    assert cases["easu_rcas@0"]["psnr_db"] != cases["easu_rcas@2"]["psnr_db"]

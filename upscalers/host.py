@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Mapping
+from typing import Any
 
 import torch
 
@@ -24,8 +26,12 @@ _WARN_EVERY_S = 5.0
 
 
 class UpscalerHost:
-    def __init__(self, name: str, display_size: Size) -> None:
-        self.upscaler: Upscaler = registry.create(name)
+    def __init__(
+        self, name: str, display_size: Size, options: Mapping[str, Any] | None = None
+    ) -> None:
+        # Constructor options (e.g. RCAS sharpness) of the method started with; a
+        # run-time switch starts the new method with its defaults.
+        self.upscaler: Upscaler = registry.create(name, **(options or {}))
         self.display_size = display_size
         self._last_input_size: Size | None = None
         self.sanitized_values = 0

@@ -28,10 +28,11 @@ import numpy.typing as npt
 import torch
 
 from server.bench.report import BenchReport, summarize_ms
+from server.eval.methods import MethodSpec, parse_method, sharpness_variants
 from server.frame import RenderFrame, Size
 from server.render.renderer import Renderer, RenderTargets
 from server.render.scenes import SCENE_NAMES, make_scene, parse_scene_list
-from upscalers import metrics, registry
+from upscalers import metrics
 from upscalers.host import UpscalerHost
 from upscalers.output import to_uint8
 
@@ -55,6 +56,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fps", type=float, default=60.0, help="game time step")
     parser.add_argument("--supersample", type=int, default=3, help="ground truth ss x ss")
     parser.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+    parser.add_argument(
+        "--rcas-sharpness",
+        default="",
+        help="comma-separated RCAS stops; adds methods easu_rcas@S (the sharpness sweep)",
+    )
 
 
 @dataclass
@@ -70,12 +76,14 @@ def _csv(text: str) -> list[str]:
     return [p.strip() for p in text.split(",") if p.strip()]
 
 
-def _parse(args: argparse.Namespace) -> tuple[list[str], list[float], list[str], Size]:
+def _parse(args: argparse.Namespace) -> tuple[list[str], list[float], list[MethodSpec], Size]:
     scenes = parse_scene_list(args.scenes)
-    methods = _csv(args.methods)
-    missing = [m for m in methods if m not in registry.available()]
-    if missing:
-        raise SystemExit(f"unknown method(s) {missing}; allowed: {', '.join(registry.available())}")
+    labels = _csv(args.methods)
+    try:
+        labels += sharpness_variants([float(s) for s in _csv(args.rcas_sharpness)])
+        methods = [parse_method(m) for m in dict.fromkeys(labels)]
+    except ValueError as e:
+        raise SystemExit(str(e)) from None
     scales = [float(s) for s in _csv(args.scales)]
     if any(not 1.0 <= s <= 4.0 for s in scales):
         raise SystemExit(f"scales must be in [1, 4], got {scales}")
@@ -99,27 +107,27 @@ def _render_frames(
 
 
 def _frames_per_method(
-    scene: str, render: Size, scale: float, times: list[float], methods: list[str]
+    scene: str, render: Size, scale: float, times: list[float], methods: list[MethodSpec]
 ) -> dict[str, list[RenderFrame]]:
     """What the game sends each method: jittered frames to temporal ones only."""
     runs: dict[bool, list[RenderFrame]] = {}
     out = {}
     for m in methods:
-        jitter = registry.is_temporal(m)
-        if jitter not in runs:
-            runs[jitter] = _render_frames(scene, render, scale, times, jitter)
-        out[m] = runs[jitter]
+        if m.temporal not in runs:
+            runs[m.temporal] = _render_frames(scene, render, scale, times, m.temporal)
+        out[m.label] = runs[m.temporal]
     return out
 
 
 def _evaluate_scale(
     frames: dict[str, list[RenderFrame]],
     truth: dict[int, npt.NDArray[np.uint8]],
-    methods: list[str],
+    specs: list[MethodSpec],
     display: Size,
     flip_from: int | None,
 ) -> dict[str, CaseResult]:
-    hosts = {m: UpscalerHost(m, display) for m in methods}
+    hosts = {m.label: UpscalerHost(m.name, display, m.options) for m in specs}
+    methods = list(hosts)
     results = {m: CaseResult() for m in methods}
     for i in range(len(next(iter(frames.values())))):
         # Rotate the order each frame so no method always runs with warm or cold caches.
@@ -153,7 +161,7 @@ def run(args: argparse.Namespace) -> int:
         {
             "scenes": scenes,
             "scales": scales,
-            "methods": methods,
+            "methods": [m.label for m in methods],
             "display_size": str(display),
             "frames": args.frames,
             "measure_from": args.measure_from,
