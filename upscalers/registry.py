@@ -59,6 +59,12 @@ def create(name: str, **options: Any) -> Upscaler:
     return factory(**options)
 
 
+def takes_option(name: str, option: str) -> bool:
+    """Whether method ``name`` has constructor option ``option`` (e.g. ``compile``)."""
+    factory = _REGISTRY.get(name)
+    return factory is not None and option in _keyword_options(factory)
+
+
 def _keyword_options(factory: Callable[..., Upscaler]) -> set[str]:
     params = inspect.signature(factory).parameters.values()
     return {p.name for p in params if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)}

@@ -55,8 +55,10 @@ import torch
 import torch.nn.functional as F
 
 from server.frame import FrameFlags, RenderFrame, Size
+from upscalers import temporal_fused
 from upscalers import temporal_ops as ops
 from upscalers.base import Upscaler
+from upscalers.compiled import CompiledFunction
 
 
 @dataclass(frozen=True)
@@ -113,8 +115,14 @@ class TemporalUpscaler(Upscaler):
         *,
         device: str | torch.device | None = None,
         dtype: torch.dtype = torch.float32,
+        compile: bool = False,
     ) -> None:
         self.params = params or TemporalParams()
+        # compile=True: the display-size blend of integer scales as one inductor-fused
+        # function (temporal_fused), once history exists; the rest stays eager.
+        self.compiled = (
+            CompiledFunction(temporal_fused.blend_blocked, "temporal") if compile else None
+        )
         if device is None:
             device = "cuda" if torch.cuda.is_available() else "cpu"
         self.device = torch.device(device)
@@ -182,6 +190,8 @@ class TemporalUpscaler(Upscaler):
 
         # ---- display size ----
         scale = _integer_scale(render, display) or 1
+        if self.compiled is not None and scale > 1 and self._history is not None:
+            return self._fused_blend(ycocg, lo, hi, prev_weight, mv, jit, scale)
         if scale > 1:
             inputs = self._blocked_inputs(ycocg, lo, hi, prev_weight, mv, jit, scale)
         else:
@@ -214,6 +224,36 @@ class TemporalUpscaler(Upscaler):
             history = new.reshape(1, 3, big_h, big_w)
         self._history = history
         return ops.ycocg_to_rgb8(history[0])
+
+    def _fused_blend(
+        self,
+        ycocg: torch.Tensor,
+        lo: torch.Tensor,
+        hi: torch.Tensor,
+        prev_weight: torch.Tensor,
+        mv: torch.Tensor,
+        jit: tuple[float, float],
+        scale: int,
+    ) -> torch.Tensor:
+        """The compiled display-size blend (same result as the blocked eager path)."""
+        assert self._history is not None and self.compiled is not None
+        p = self.params
+        _, h, w = ycocg.shape
+        dev = ycocg.device
+        gx = self._axis_weights(scale, w * scale, w, jit[0], dev)
+        gy = self._axis_weights(scale, h * scale, h, jit[1], dev)
+        self._store_weight(prev_weight, float(torch.outer(gy, gx).mean()))
+        k = p.reconstruct_sharpness
+        rows = temporal_fused.axis_tables(h * scale, h, scale, jit[1], k, gy, self.dtype)
+        cols = temporal_fused.axis_tables(w * scale, w, scale, jit[0], k, gx, self.dtype)
+        gain = p.history_sharpen_gain if p.history_catmull_rom else 0.0
+        new, rgb8 = self.compiled(
+            self._history[0], ycocg, lo, hi, prev_weight, mv,
+            tuple(t.view(-1, 1) for t in rows), tuple(t.view(1, -1) for t in cols),
+            scale, gain,
+        )  # fmt: skip
+        self._history = new.unsqueeze(0)
+        return rgb8.permute(2, 0, 1)  # type: ignore[no-any-return]
 
     def _fetch_history(
         self, history: torch.Tensor, motion: torch.Tensor, layout: torch.Size, w: int, h: int
