@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from server.cli import main
-from server.eval.methods import parse_method
+from server.eval.methods import compiled_variants, parse_method
 from server.eval.upscalers import _frames_per_method, must_show_checks
 from server.frame import Size
 from upscalers import metrics
@@ -59,6 +59,17 @@ def test_flicker_ignores_constant_error_and_sees_changing_error() -> None:
 def _case(scene: str, method: str, psnr: float, flip: float, flicker: float) -> dict[str, object]:
     return {"scene": scene, "scale": 2.0, "method": method, "psnr_db": psnr, "flip": flip,
             "flicker": flicker}  # fmt: skip
+
+
+def test_time_checks_use_the_720p_medians() -> None:
+    cases = [
+        {**_case(s, "easu_rcas", 30.0, 0.1, 0.02), "render_size": "640x360", "median_ms": ms}
+        for s, ms in (("a", 14.0), ("b", 16.0), ("c", 15.0))
+    ]
+    slow = [{**c, "method": "temporal", "median_ms": 21.0} for c in cases]
+    results = dict(must_show_checks(cases + slow))  # type: ignore[arg-type]
+    assert results["640x360 -> 1280x720: easu_rcas median 15.0 ms <= 15 ms"]
+    assert not results["640x360 -> 1280x720: temporal median 21.0 ms <= 20 ms"]
 
 
 def test_must_show_checks_evaluate_the_statements() -> None:
@@ -132,7 +143,7 @@ def test_sharpness_sweep_adds_easu_rcas_variants(tmp_path: Path) -> None:
     out = tmp_path / "sweep.json"
     code = main(
         ["eval", "upscalers", "--json", str(out), "--scenes", "static", "--scales", "2",
-         "--methods", "easu", "--rcas-sharpness", "0,2", "--frames", "2", "--measure-from", "1",
+         "--methods", "easu", "--rcas-sharpness", "0,2", "--frames", "3", "--measure-from", "2",
          "--flip-frames", "0", "--display-size", "64x36", "--supersample", "1"]
     )  # fmt: skip
     assert code == 0
@@ -140,3 +151,14 @@ def test_sharpness_sweep_adds_easu_rcas_variants(tmp_path: Path) -> None:
     assert set(cases) == {"easu", "easu_rcas@0", "easu_rcas@2"}
     # Distinct methods, not one run three times: the strongest sharpening moves furthest.
     assert cases["easu_rcas@0"]["psnr_db"] != cases["easu_rcas@2"]["psnr_db"]
+
+
+def test_compile_flag_adds_compiled_variants() -> None:
+    assert compiled_variants(["bicubic", "easu_rcas@1", "temporal"]) == [
+        "easu_rcas@1+compiled",
+        "temporal+compiled",
+    ]
+    spec = parse_method("easu_rcas@1+compiled")
+    assert spec.options == {"sharpness": 1.0, "compile": True}
+    with pytest.raises(ValueError, match="no compiled path"):
+        parse_method("bicubic+compiled")
