@@ -118,10 +118,11 @@ class TemporalUpscaler(Upscaler):
         compile: bool = False,
     ) -> None:
         self.params = params or TemporalParams()
-        # compile=True: the display-size blend of integer scales as one inductor-fused
-        # function (temporal_fused), once history exists; the rest stays eager.
+        # compile=True: the render-size stage of frames with history runs as one
+        # inductor-fused function (temporal_fused); the display-size blend stays eager
+        # (its planar eager form measured faster than a compiled per-pixel gather).
         self.compiled = (
-            CompiledFunction(temporal_fused.blend_blocked, "temporal") if compile else None
+            CompiledFunction(temporal_fused.render_stage, "temporal") if compile else None
         )
         if device is None:
             device = "cuda" if torch.cuda.is_available() else "cpu"
@@ -165,33 +166,16 @@ class TemporalUpscaler(Upscaler):
         jit = ops.jitter(frame)
 
         # ---- render size: colour, box, dilated motion, trust, accumulated weight ----
-        ycocg = ops.rgb8_to_ycocg(ops.as_tensor(frame.color, dev), dt)
-        if p.presharpen > 0.0:
-            ycocg = ops.sharpen(ycocg, p.presharpen)
-        lo, hi = ops.box_3x3(ycocg)
-        depth = ops.as_tensor(frame.depth, dev).to(dt)
-        depth = torch.nan_to_num(depth, nan=1.0, posinf=1.0, neginf=0.0).clamp_(0.0, 1.0)
-        motion = ops.as_tensor(frame.motion, dev).to(dt)
-        lim = 4.0 * max(w, h)
-        motion = torch.nan_to_num(motion, nan=0.0, posinf=0.0, neginf=0.0).clamp_(-lim, lim)
         nf = ops.near_far(frame)
-        if nf is None:
-            lin = depth
+        steady = self._prev_far is not None and self._weight is not None
+        if self.compiled is not None and steady and nf is not None:
+            ycocg, lo, hi, prev_weight, mv = self._render_stage_compiled(frame, jit, nf)
         else:
-            near, far = nf
-            lin = torch.reciprocal(depth.mul(-(far - near) / (near * far)).add_(1.0 / near))
-        mask = ops.as_tensor(frame.dynamic_mask, dev)
-        # Most frames have no moving object: no need to dilate an empty mask.
-        mask_d = ops.box_3x3(mask.to(dt).unsqueeze(0))[1][0] if bool(mask.any()) else None
-        lin_d, mv = ops.closest_3x3(lin, motion.permute(2, 0, 1))
-        prev_weight = self._reproject_weight(lin_d, mv, mask_d, jit)
-        self._prev_far = ops.max_2x2(lin)
+            ycocg, lo, hi, prev_weight, mv = self._render_stage(frame, jit, nf)
         self._prev_jitter = jit
 
         # ---- display size ----
         scale = _integer_scale(render, display) or 1
-        if self.compiled is not None and scale > 1 and self._history is not None:
-            return self._fused_blend(ycocg, lo, hi, prev_weight, mv, jit, scale)
         if scale > 1:
             inputs = self._blocked_inputs(ycocg, lo, hi, prev_weight, mv, jit, scale)
         else:
@@ -225,35 +209,55 @@ class TemporalUpscaler(Upscaler):
         self._history = history
         return ops.ycocg_to_rgb8(history[0])
 
-    def _fused_blend(
-        self,
-        ycocg: torch.Tensor,
-        lo: torch.Tensor,
-        hi: torch.Tensor,
-        prev_weight: torch.Tensor,
-        mv: torch.Tensor,
-        jit: tuple[float, float],
-        scale: int,
-    ) -> torch.Tensor:
-        """The compiled display-size blend (same result as the blocked eager path)."""
-        assert self._history is not None and self.compiled is not None
+    def _render_stage(
+        self, frame: RenderFrame, jit: tuple[float, float], nf: tuple[float, float] | None
+    ) -> tuple[torch.Tensor, ...]:
+        """YCoCg samples, their 3x3 box, the trusted accumulated weight and the dilated
+        motion; keeps this frame's 2x2 max depth for the next one."""
         p = self.params
-        _, h, w = ycocg.shape
-        dev = ycocg.device
-        gx = self._axis_weights(scale, w * scale, w, jit[0], dev)
-        gy = self._axis_weights(scale, h * scale, h, jit[1], dev)
-        self._store_weight(prev_weight, float(torch.outer(gy, gx).mean()))
-        k = p.reconstruct_sharpness
-        rows = temporal_fused.axis_tables(h * scale, h, scale, jit[1], k, gy, self.dtype)
-        cols = temporal_fused.axis_tables(w * scale, w, scale, jit[0], k, gx, self.dtype)
-        gain = p.history_sharpen_gain if p.history_catmull_rom else 0.0
-        new, rgb8 = self.compiled(
-            self._history[0], ycocg, lo, hi, prev_weight, mv,
-            tuple(t.view(-1, 1) for t in rows), tuple(t.view(1, -1) for t in cols),
-            scale, gain,
+        dev = ops.input_device(frame, self.device)
+        dt = self.dtype
+        h, w = frame.depth.shape[:2]
+        ycocg = ops.rgb8_to_ycocg(ops.as_tensor(frame.color, dev), dt)
+        if p.presharpen > 0.0:
+            ycocg = ops.sharpen(ycocg, p.presharpen)
+        lo, hi = ops.box_3x3(ycocg)
+        depth = ops.as_tensor(frame.depth, dev).to(dt)
+        depth = torch.nan_to_num(depth, nan=1.0, posinf=1.0, neginf=0.0).clamp_(0.0, 1.0)
+        motion = ops.as_tensor(frame.motion, dev).to(dt)
+        lim = 4.0 * max(w, h)
+        motion = torch.nan_to_num(motion, nan=0.0, posinf=0.0, neginf=0.0).clamp_(-lim, lim)
+        if nf is None:
+            lin = depth
+        else:
+            near, far = nf
+            lin = torch.reciprocal(depth.mul(-(far - near) / (near * far)).add_(1.0 / near))
+        mask = ops.as_tensor(frame.dynamic_mask, dev)
+        # Most frames have no moving object: no need to dilate an empty mask.
+        mask_d = ops.box_3x3(mask.to(dt).unsqueeze(0))[1][0] if bool(mask.any()) else None
+        lin_d, mv = ops.closest_3x3(lin, motion.permute(2, 0, 1))
+        prev_weight = self._reproject_weight(lin_d, mv, mask_d, jit)
+        self._prev_far = ops.max_2x2(lin)
+        return ycocg, lo, hi, prev_weight, mv
+
+    def _render_stage_compiled(
+        self, frame: RenderFrame, jit: tuple[float, float], nf: tuple[float, float]
+    ) -> tuple[torch.Tensor, ...]:
+        """``_render_stage`` of a frame with history through the compiled
+        ``temporal_fused.render_stage`` (same result within float rounding)."""
+        assert self._prev_far is not None and self._weight is not None
+        assert self.compiled is not None
+        p = self.params
+        dev, dt = self._prev_far.device, self.dtype
+        inputs = (frame.color, frame.depth, frame.motion, frame.dynamic_mask)
+        ycocg, lo, hi, prev_weight, mv, self._prev_far = self.compiled(
+            *(ops.as_tensor(x, dev) for x in inputs), self._prev_far, self._weight,
+            torch.tensor(jit, device=dev, dtype=dt),
+            torch.tensor(self._prev_jitter, device=dev, dtype=dt),
+            torch.tensor(nf, device=dev, dtype=dt),
+            (p.presharpen, p.depth_tolerance, p.dynamic_keep, p.max_weight),
         )  # fmt: skip
-        self._history = new.unsqueeze(0)
-        return rgb8.permute(2, 0, 1)  # type: ignore[no-any-return]
+        return ycocg, lo, hi, prev_weight, mv
 
     def _fetch_history(
         self, history: torch.Tensor, motion: torch.Tensor, layout: torch.Size, w: int, h: int

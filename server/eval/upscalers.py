@@ -11,8 +11,9 @@ ground truth. Methods run interleaved frame by frame in one process, each
 through its own UpscalerHost (the worker's code path), so timings compare like
 with like and temporal methods see the frames in order. ``--compile`` adds
 ``METHOD+compiled`` next to each method with a torch.compile path, so eager and
-compiled are timed in the same run; their compile time shows as ``warmup_ms``. Quality is measured on the frames
-after a warm-up that lets temporal history build up; FLIP, which costs seconds
+compiled are timed in the same run; their compile time shows as ``warmup_ms``.
+Quality is measured on the frames after a warm-up that lets temporal history
+build up; FLIP, which costs seconds
 per frame on a CPU, is computed on the last ``--flip-frames`` of them.
 """
 
