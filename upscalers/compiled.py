@@ -19,12 +19,26 @@ import torch
 log = logging.getLogger(__name__)
 
 
+# One torch.compile wrapper per function for the whole process: dynamo keeps its
+# compiled code per wrapper and gives up (runs eagerly, with only a warning) after
+# a few entries per code object, so a wrapper per upscaler instance (the evaluation
+# makes one per scene and scale) would silently stop compiling.
+_SHARED: dict[Callable[..., Any], Callable[..., Any]] = {}
+
+
+def _shared_compile(fn: Callable[..., Any]) -> Callable[..., Any]:
+    compiled = _SHARED.get(fn)
+    if compiled is None:
+        compiled = _SHARED[fn] = torch.compile(fn, dynamic=False)
+    return compiled
+
+
 class CompiledFunction:
     """A pure tensor function compiled once per input geometry (static shapes)."""
 
     def __init__(self, fn: Callable[..., Any], what: str) -> None:
         self.what = what
-        self._fn = torch.compile(fn, dynamic=False)
+        self._fn = _shared_compile(fn)
         self._seen: set[tuple[Any, ...]] = set()
         self.warmup_s: dict[str, float] = {}
 
@@ -38,9 +52,7 @@ class CompiledFunction:
         self._seen.add(key)
         shapes = "x".join(str(d) for d in args[0].shape) if args else "?"
         self.warmup_s[shapes] = took
-        log.info(
-            "compiled %s for %s in %.1f s (first call, cache included)", self.what, shapes, took
-        )
+        log.info("compiled %s for %s in %.1f s (first call of this size)", self.what, shapes, took)
         return out
 
 
