@@ -105,6 +105,8 @@ def test_eval_command_writes_report_table_and_plot(tmp_path: Path) -> None:
     for case in report["cases"]:
         assert case["median_ms"] > 0 and case["p95_ms"] >= case["median_ms"]
         assert 10 < case["psnr_db"] < 60 and 0 < case["ssim"] <= 1 and 0 <= case["flip"] < 1
+    ratio = {r["name"]: r["ratio"] for r in report["ratios"]}
+    assert ratio["2x bicubic / bilinear time"] > 0
     assert (tmp_path / "p.png").read_bytes()[:4] == b"\x89PNG"
     assert "| bilinear |" in (tmp_path / "t.md").read_text()
 

@@ -242,6 +242,7 @@ def run(args: argparse.Namespace) -> int:
                 f"({elapsed:.0f} s elapsed, ~{eta:.0f} s left)",
                 file=sys.stderr,
             )
+    add_ratios(report)
     checks = must_show_checks(report.cases)
     report.notes.extend(f"{'PASS' if ok else 'FAIL'}: {text}" for text, ok in checks)
     report.write(args.json)
@@ -259,6 +260,25 @@ def run(args: argparse.Namespace) -> int:
         print(f"plot written to {args.plot}")
     print(f"report written to {args.json}")
     return 0
+
+
+def add_ratios(report: BenchReport) -> None:
+    """Per scale, each method's time against bilinear's and each compiled variant's
+    speed-up over its eager method: medians over scenes of the per-scene medians,
+    all taken in this one interleaved run."""
+    by_key: dict[tuple[float, str], list[float]] = {}
+    for c in report.cases:
+        by_key.setdefault((c["scale"], c["method"]), []).append(c["median_ms"])
+    med = {k: float(np.median(v)) for k, v in by_key.items()}
+    for (scale, method), ms in med.items():
+        base = med.get((scale, "bilinear"))
+        if base and method != "bilinear":
+            report.add_ratio(f"{scale:g}x {method} / bilinear time", method, "bilinear", ms / base)
+        eager = method.removesuffix("+compiled")
+        if eager != method and (scale, eager) in med:
+            report.add_ratio(
+                f"{scale:g}x {eager} speed-up compiled", eager, method, med[(scale, eager)] / ms
+            )
 
 
 def _case(cases: list[dict[str, Any]], scene: str, scale: float, method: str) -> dict[str, Any]:
