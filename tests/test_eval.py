@@ -156,9 +156,9 @@ def test_sharpness_sweep_adds_easu_rcas_variants(tmp_path: Path) -> None:
 
 
 def test_compile_flag_adds_compiled_variants() -> None:
-    assert compiled_variants(["bicubic", "easu_rcas@1", "temporal"]) == [
+    assert compiled_variants(["bicubic", "easu_rcas@1", "temporal", "easu"]) == [
         "easu_rcas@1+compiled",
-        "temporal+compiled",
+        "easu+compiled",
     ]
     spec = parse_method("easu_rcas@1+compiled")
     assert spec.options == {"sharpness": 1.0, "compile": True}

@@ -55,10 +55,8 @@ import torch
 import torch.nn.functional as F
 
 from server.frame import FrameFlags, RenderFrame, Size
-from upscalers import temporal_fused
 from upscalers import temporal_ops as ops
 from upscalers.base import Upscaler
-from upscalers.compiled import CompiledFunction
 
 
 @dataclass(frozen=True)
@@ -115,15 +113,9 @@ class TemporalUpscaler(Upscaler):
         *,
         device: str | torch.device | None = None,
         dtype: torch.dtype = torch.float32,
-        compile: bool = False,
     ) -> None:
         self.params = params or TemporalParams()
-        # compile=True: the render-size stage of frames with history runs as one
-        # inductor-fused function (temporal_fused); the display-size blend stays eager
-        # (its planar eager form measured faster than a compiled per-pixel gather).
-        self.compiled = (
-            CompiledFunction(temporal_fused.render_stage, "temporal") if compile else None
-        )
+
         if device is None:
             device = "cuda" if torch.cuda.is_available() else "cpu"
         self.device = torch.device(device)
@@ -166,12 +158,7 @@ class TemporalUpscaler(Upscaler):
         jit = ops.jitter(frame)
 
         # ---- render size: colour, box, dilated motion, trust, accumulated weight ----
-        nf = ops.near_far(frame)
-        steady = self._prev_far is not None and self._weight is not None
-        if self.compiled is not None and steady and nf is not None:
-            ycocg, lo, hi, prev_weight, mv = self._render_stage_compiled(frame, jit, nf)
-        else:
-            ycocg, lo, hi, prev_weight, mv = self._render_stage(frame, jit, nf)
+        ycocg, lo, hi, prev_weight, mv = self._render_stage(frame, jit, ops.near_far(frame))
         self._prev_jitter = jit
 
         # ---- display size ----
@@ -238,25 +225,6 @@ class TemporalUpscaler(Upscaler):
         lin_d, mv = ops.closest_3x3(lin, motion.permute(2, 0, 1))
         prev_weight = self._reproject_weight(lin_d, mv, mask_d, jit)
         self._prev_far = ops.max_2x2(lin)
-        return ycocg, lo, hi, prev_weight, mv
-
-    def _render_stage_compiled(
-        self, frame: RenderFrame, jit: tuple[float, float], nf: tuple[float, float]
-    ) -> tuple[torch.Tensor, ...]:
-        """``_render_stage`` of a frame with history through the compiled
-        ``temporal_fused.render_stage`` (same result within float rounding)."""
-        assert self._prev_far is not None and self._weight is not None
-        assert self.compiled is not None
-        p = self.params
-        dev, dt = self._prev_far.device, self.dtype
-        inputs = (frame.color, frame.depth, frame.motion, frame.dynamic_mask)
-        ycocg, lo, hi, prev_weight, mv, self._prev_far = self.compiled(
-            *(ops.as_tensor(x, dev) for x in inputs), self._prev_far, self._weight,
-            torch.tensor(jit, device=dev, dtype=dt),
-            torch.tensor(self._prev_jitter, device=dev, dtype=dt),
-            torch.tensor(nf, device=dev, dtype=dt),
-            (p.presharpen, p.depth_tolerance, p.dynamic_keep, p.max_weight),
-        )  # fmt: skip
         return ycocg, lo, hi, prev_weight, mv
 
     def _fetch_history(

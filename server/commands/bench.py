@@ -13,6 +13,7 @@ BENCHMARKS: dict[str, str] = {
     "framegen": "frame prediction (MPE and baselines): quality against cost per scene",
     "encode": "x264 + CMAF per frame: ms, bytes, PSNR, keyframe cost, mux delay",
     "latency": "render_end -> client_present per stage, real stack + headless Chromium",
+    "compile_start": "upscaler compile=True at a worker start: inductor cache cold and warm",
 }
 
 

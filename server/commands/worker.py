@@ -23,7 +23,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--compile",
         action="store_true",
-        help="torch.compile easu, easu_rcas and temporal (the first frame waits for it)",
+        help="torch.compile easu and easu_rcas (the first frame of a size waits for it)",
     )
 
 

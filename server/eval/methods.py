@@ -1,7 +1,7 @@
 """Method labels of the upscaler evaluation: a registry name plus options.
 
 ``easu_rcas@1.5`` is easu_rcas with RCAS at 1.5 stops (the sharpness sweep);
-``temporal+compiled`` is temporal with its torch.compile path, so one run times
+``easu_rcas+compiled`` is easu_rcas with its torch.compile path, so one run times
 eager and compiled side by side.
 """
 
