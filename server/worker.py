@@ -49,6 +49,11 @@ class WorkerConfig(BaseModel):
     metrics_port: int = Field(
         default=0, ge=0, le=65535, description="Prometheus /metrics TCP port (0: off)"
     )
+    compile: bool = Field(
+        default=False,
+        description="torch.compile the upscalers that have a compiled path (first frame "
+        "of a size waits for the compile; inductor's disk cache makes later starts fast)",
+    )
 
 
 @dataclass
@@ -167,7 +172,7 @@ def run_worker(config: WorkerConfig, stop: threading.Event | None = None) -> int
             signal.signal(sig, lambda *_: stop.set())
     ring_in = attach_render_ring(config.ring_in, wait_s=config.attach_timeout_s)
     ring_out = attach_display_ring(config.ring_out, wait_s=config.attach_timeout_s)
-    host = UpscalerHost(config.upscaler, Size.parse(config.display_size))
+    host = UpscalerHost(config.upscaler, Size.parse(config.display_size), compile=config.compile)
     worker = UpscaleWorker(ring_in, ring_out, host, newest=config.newest)
     serve_metrics(worker_registry(worker), config.metrics_port, "worker")
     control = ControlServer(config.control_path) if config.control_path else None

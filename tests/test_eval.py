@@ -9,7 +9,9 @@ import numpy as np
 import pytest
 
 from server.cli import main
-from server.eval.upscalers import must_show_checks
+from server.eval.methods import compiled_variants, parse_method
+from server.eval.upscalers import _frames_per_method, must_show_checks
+from server.frame import Size
 from upscalers import metrics
 
 
@@ -59,6 +61,17 @@ def _case(scene: str, method: str, psnr: float, flip: float, flicker: float) -> 
             "flicker": flicker}  # fmt: skip
 
 
+def test_time_checks_use_the_720p_medians() -> None:
+    cases = [
+        {**_case(s, "easu_rcas", 30.0, 0.1, 0.02), "render_size": "640x360", "median_ms": ms}
+        for s, ms in (("a", 14.0), ("b", 16.0), ("c", 15.0))
+    ]
+    slow = [{**c, "method": "temporal", "median_ms": 21.0} for c in cases]
+    results = dict(must_show_checks(cases + slow))  # type: ignore[arg-type]
+    assert results["640x360 -> 1280x720: easu_rcas median 15.0 ms <= 15 ms"]
+    assert not results["640x360 -> 1280x720: temporal median 21.0 ms <= 20 ms"]
+
+
 def test_must_show_checks_evaluate_the_statements() -> None:
     cases = [
         _case("static", "bicubic", 30.0, 0.10, 0.02),
@@ -92,6 +105,8 @@ def test_eval_command_writes_report_table_and_plot(tmp_path: Path) -> None:
     for case in report["cases"]:
         assert case["median_ms"] > 0 and case["p95_ms"] >= case["median_ms"]
         assert 10 < case["psnr_db"] < 60 and 0 < case["ssim"] <= 1 and 0 <= case["flip"] < 1
+    ratio = {r["name"]: r["ratio"] for r in report["ratios"]}
+    assert ratio["2x bicubic / bilinear time"] > 0
     assert (tmp_path / "p.png").read_bytes()[:4] == b"\x89PNG"
     assert "| bilinear |" in (tmp_path / "t.md").read_text()
 
@@ -99,3 +114,53 @@ def test_eval_command_writes_report_table_and_plot(tmp_path: Path) -> None:
 def test_eval_refuses_unknown_names(tmp_path: Path) -> None:
     with pytest.raises(SystemExit, match="allowed"):
         main(["eval", "upscalers", "--json", str(tmp_path / "x.json"), "--methods", "magic"])
+
+
+def test_spatial_methods_get_unjittered_frames_temporal_jittered() -> None:
+    # What the pipeline sends: the game jitters only for temporal upscalers.
+    times = [0.0, 1 / 60, 2 / 60]
+    specs = [parse_method("bicubic"), parse_method("temporal")]
+    frames = _frames_per_method("static", Size(32, 18), 2.0, times, specs)
+    assert all(f.meta.jitter == (0.0, 0.0) for f in frames["bicubic"])
+    assert any(f.meta.jitter != (0.0, 0.0) for f in frames["temporal"])
+    # Same scene at the same times: the unjittered and jittered renders stay close.
+    diff = np.abs(
+        frames["bicubic"][2].color.astype(int) - frames["temporal"][2].color.astype(int)
+    ).mean()
+    assert diff < 20
+
+
+def test_method_labels_carry_rcas_sharpness() -> None:
+    spec = parse_method("easu_rcas@1.5")
+    assert (spec.name, spec.options) == ("easu_rcas", {"sharpness": 1.5})
+    with pytest.raises(ValueError, match="no option sharpness"):
+        parse_method("bicubic@1")
+    with pytest.raises(ValueError, match="must be a number"):
+        parse_method("easu_rcas@sharp")
+    with pytest.raises(ValueError, match=">= 0 stops"):
+        parse_method("easu_rcas@-1")
+
+
+def test_sharpness_sweep_adds_easu_rcas_variants(tmp_path: Path) -> None:
+    out = tmp_path / "sweep.json"
+    code = main(
+        ["eval", "upscalers", "--json", str(out), "--scenes", "static", "--scales", "2",
+         "--methods", "easu", "--rcas-sharpness", "0,2", "--frames", "3", "--measure-from", "2",
+         "--flip-frames", "0", "--display-size", "64x36", "--supersample", "1"]
+    )  # fmt: skip
+    assert code == 0
+    cases = {c["method"]: c for c in json.loads(out.read_text())["cases"]}
+    assert set(cases) == {"easu", "easu_rcas@0", "easu_rcas@2"}
+    # Distinct methods, not one run three times: the strongest sharpening moves furthest.
+    assert cases["easu_rcas@0"]["psnr_db"] != cases["easu_rcas@2"]["psnr_db"]
+
+
+def test_compile_flag_adds_compiled_variants() -> None:
+    assert compiled_variants(["bicubic", "easu_rcas@1", "temporal", "easu"]) == [
+        "easu_rcas@1+compiled",
+        "easu+compiled",
+    ]
+    spec = parse_method("easu_rcas@1+compiled")
+    assert spec.options == {"sharpness": 1.0, "compile": True}
+    with pytest.raises(ValueError, match="no compiled path"):
+        parse_method("bicubic+compiled")

@@ -3,7 +3,8 @@
 The math lives in ``fsr1_easu`` and ``fsr1_rcas``; this module adapts it to the
 upscaler interface. Both run on the device given at construction (CPU by default;
 a CUDA device moves the colour plane there) in float32, or in float16 on CUDA
-when asked.
+when asked. ``compile=True`` runs ``fsr1_fused`` through torch.compile instead of
+the banded eager code (same result within float rounding; see ``compiled.py``).
 """
 
 from __future__ import annotations
@@ -14,7 +15,9 @@ import torch
 
 from server.frame import RenderFrame, Size
 from upscalers.base import Upscaler
-from upscalers.fsr1_easu import Easu
+from upscalers.compiled import CompiledFunction
+from upscalers.fsr1_easu import PAD, Easu, axis_map, replicate_pad_into
+from upscalers.fsr1_fused import easu_fused, easu_rcas_fused
 from upscalers.fsr1_rcas import DEFAULT_SHARPNESS, Rcas
 from upscalers.resample import color_as_nchw
 
@@ -27,13 +30,44 @@ def frame_color(frame: RenderFrame, device: torch.device) -> torch.Tensor:
 
 class _Fsr1Base(Upscaler):
     def __init__(
-        self, device: str | torch.device = "cpu", dtype: torch.dtype = torch.float32
+        self,
+        device: str | torch.device = "cpu",
+        dtype: torch.dtype = torch.float32,
+        compile: bool = False,
     ) -> None:
         self.device = torch.device(device)
         if dtype not in (torch.float32, torch.float16, torch.bfloat16):
             raise ValueError(f"dtype must be a float dtype, got {dtype}")
         self.dtype = dtype
         self._easu = Easu(dtype=dtype)
+        # compile=True: one fused inductor kernel instead of the banded eager ops.
+        self.compiled: CompiledFunction | None = None
+        self._geometry: tuple[object, ...] | None = None
+        self._fused_args: tuple[torch.Tensor, ...] = ()
+        self._fused_padded: torch.Tensor | None = None
+
+    def _fused_inputs(
+        self, color: torch.Tensor, out_hw: tuple[int, int]
+    ) -> tuple[torch.Tensor, ...]:
+        """The padded input and the per-geometry tap indices and phases of fsr1_fused."""
+        _, h, w = color.shape
+        ho, wo = out_hw
+        key = (h, w, ho, wo, color.device)
+        if key != self._geometry:
+            self._geometry = key
+            bx, fx = axis_map(w, wo)
+            by, fy = axis_map(h, ho)
+            dev, dt = color.device, self.dtype
+            self._fused_args = (
+                (by + PAD).view(-1, 1).to(dev),
+                (bx + PAD).view(1, -1).to(dev),
+                fy.to(dt).view(-1, 1).to(dev),
+                fx.to(dt).view(1, -1).to(dev),
+            )
+            self._fused_padded = torch.empty((3, h + 2 * PAD, w + 2 * PAD), dtype=dt, device=dev)
+        assert self._fused_padded is not None
+        replicate_pad_into(color, self._fused_padded, PAD)
+        return (self._fused_padded, *self._fused_args)
 
 
 class EasuUpscaler(_Fsr1Base):
@@ -41,9 +75,22 @@ class EasuUpscaler(_Fsr1Base):
 
     name: ClassVar[str] = "easu"
 
+    def __init__(
+        self,
+        device: str | torch.device = "cpu",
+        dtype: torch.dtype = torch.float32,
+        compile: bool = False,
+    ) -> None:
+        super().__init__(device, dtype, compile)
+        if compile:
+            self.compiled = CompiledFunction(easu_fused, "easu")
+
     def upscale(self, frame: RenderFrame, display_size: Size) -> torch.Tensor:
         color = frame_color(frame, self.device)
-        return self._easu(color, (display_size.height, display_size.width))
+        out_hw = (display_size.height, display_size.width)
+        if self.compiled is not None:
+            return self.compiled(*self._fused_inputs(color, out_hw))  # type: ignore[no-any-return]
+        return self._easu(color, out_hw)
 
 
 class EasuRcasUpscaler(_Fsr1Base):
@@ -62,10 +109,15 @@ class EasuRcasUpscaler(_Fsr1Base):
         denoise: bool = False,
         device: str | torch.device = "cpu",
         dtype: torch.dtype = torch.float32,
+        compile: bool = False,
     ) -> None:
-        super().__init__(device, dtype)
+        super().__init__(device, dtype, compile)
         self._rcas = Rcas(sharpness=sharpness, denoise=denoise)
         self._padded: torch.Tensor | None = None
+        if compile:
+            if denoise:
+                raise ValueError("compile=True does not implement RCAS denoise")
+            self.compiled = CompiledFunction(easu_rcas_fused, "easu_rcas")
 
     @property
     def sharpness(self) -> float:
@@ -74,6 +126,9 @@ class EasuRcasUpscaler(_Fsr1Base):
     def upscale(self, frame: RenderFrame, display_size: Size) -> torch.Tensor:
         color = frame_color(frame, self.device)
         h, w = display_size.height, display_size.width
+        if self.compiled is not None:
+            args = self._fused_inputs(color, (h, w))
+            return self.compiled(*args, self._rcas.scale)  # type: ignore[no-any-return]
         shape = (3, h + 2, w + 2)
         if (
             self._padded is None

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Mapping
+from typing import Any
 
 import torch
 
@@ -24,8 +26,20 @@ _WARN_EVERY_S = 5.0
 
 
 class UpscalerHost:
-    def __init__(self, name: str, display_size: Size) -> None:
-        self.upscaler: Upscaler = registry.create(name)
+    def __init__(
+        self,
+        name: str,
+        display_size: Size,
+        options: Mapping[str, Any] | None = None,
+        *,
+        compile: bool = False,
+    ) -> None:
+        # compile=True: every method that has a compiled path (the start one and any
+        # switched to) uses it; the others run as usual.
+        self.compile = compile
+        # Constructor options (e.g. RCAS sharpness) of the method started with; a
+        # run-time switch starts the new method with its defaults.
+        self.upscaler: Upscaler = self._create(name, options)
         self.display_size = display_size
         self._last_input_size: Size | None = None
         self.sanitized_values = 0
@@ -40,10 +54,17 @@ class UpscalerHost:
         """Use another method from the next frame on (raises ValueError if unknown)."""
         if name == self.upscaler.name:
             return
-        new = registry.create(name)
+        new = self._create(name)
         log.info("upscaler switched: %s -> %s", self.upscaler.name, name)
         self.upscaler = new
         self._last_input_size = None
+
+    def _create(self, name: str, options: Mapping[str, Any] | None = None) -> Upscaler:
+        opts = dict(options or {})
+        if self.compile and registry.takes_option(name, "compile"):
+            opts.setdefault("compile", True)
+            log.info("%s: compiled path on; the first frame of each size compiles", name)
+        return registry.create(name, **opts)
 
     def upscale(self, frame: RenderFrame) -> torch.Tensor:
         """Sanitize, reset history when needed, upscale. Returns the method's tensor."""

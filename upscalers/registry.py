@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import inspect
 from collections.abc import Callable
+from typing import Any
 
 from upscalers.base import Upscaler
 from upscalers.fsr1 import EasuRcasUpscaler, EasuUpscaler
@@ -10,7 +12,7 @@ from upscalers.lanczos import Lanczos2Upscaler
 from upscalers.resample import BicubicUpscaler, BilinearUpscaler, NearestUpscaler
 from upscalers.temporal import TemporalUpscaler
 
-_REGISTRY: dict[str, Callable[[], Upscaler]] = {
+_REGISTRY: dict[str, Callable[..., Upscaler]] = {
     cls.name: cls
     for cls in (
         NearestUpscaler,
@@ -37,10 +39,32 @@ def is_temporal(name: str) -> bool:
     return isinstance(factory, type) and issubclass(factory, Upscaler) and factory.temporal
 
 
-def create(name: str) -> Upscaler:
-    """A new upscaler by config name; unknown names list the allowed ones."""
+def create(name: str, **options: Any) -> Upscaler:
+    """A new upscaler by config name; unknown names list the allowed ones.
+
+    ``options`` go to the method's constructor (e.g. ``sharpness`` of easu_rcas);
+    an option the method does not take is refused with the ones it does."""
     try:
         factory = _REGISTRY[name]
     except KeyError:
         raise ValueError(f"unknown upscaler {name!r}; allowed: {', '.join(available())}") from None
-    return factory()
+    if options:
+        allowed = _keyword_options(factory)
+        unknown = sorted(set(options) - allowed)
+        if unknown:
+            raise ValueError(
+                f"upscaler {name!r} takes no option {', '.join(unknown)}; "
+                f"allowed: {', '.join(sorted(allowed)) or 'none'}"
+            )
+    return factory(**options)
+
+
+def takes_option(name: str, option: str) -> bool:
+    """Whether method ``name`` has constructor option ``option`` (e.g. ``compile``)."""
+    factory = _REGISTRY.get(name)
+    return factory is not None and option in _keyword_options(factory)
+
+
+def _keyword_options(factory: Callable[..., Upscaler]) -> set[str]:
+    params = inspect.signature(factory).parameters.values()
+    return {p.name for p in params if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)}

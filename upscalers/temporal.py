@@ -115,6 +115,7 @@ class TemporalUpscaler(Upscaler):
         dtype: torch.dtype = torch.float32,
     ) -> None:
         self.params = params or TemporalParams()
+
         if device is None:
             device = "cuda" if torch.cuda.is_available() else "cpu"
         self.device = torch.device(device)
@@ -157,27 +158,7 @@ class TemporalUpscaler(Upscaler):
         jit = ops.jitter(frame)
 
         # ---- render size: colour, box, dilated motion, trust, accumulated weight ----
-        ycocg = ops.rgb8_to_ycocg(ops.as_tensor(frame.color, dev), dt)
-        if p.presharpen > 0.0:
-            ycocg = ops.sharpen(ycocg, p.presharpen)
-        lo, hi = ops.box_3x3(ycocg)
-        depth = ops.as_tensor(frame.depth, dev).to(dt)
-        depth = torch.nan_to_num(depth, nan=1.0, posinf=1.0, neginf=0.0).clamp_(0.0, 1.0)
-        motion = ops.as_tensor(frame.motion, dev).to(dt)
-        lim = 4.0 * max(w, h)
-        motion = torch.nan_to_num(motion, nan=0.0, posinf=0.0, neginf=0.0).clamp_(-lim, lim)
-        nf = ops.near_far(frame)
-        if nf is None:
-            lin = depth
-        else:
-            near, far = nf
-            lin = torch.reciprocal(depth.mul(-(far - near) / (near * far)).add_(1.0 / near))
-        mask = ops.as_tensor(frame.dynamic_mask, dev)
-        # Most frames have no moving object: no need to dilate an empty mask.
-        mask_d = ops.box_3x3(mask.to(dt).unsqueeze(0))[1][0] if bool(mask.any()) else None
-        lin_d, mv = ops.closest_3x3(lin, motion.permute(2, 0, 1))
-        prev_weight = self._reproject_weight(lin_d, mv, mask_d, jit)
-        self._prev_far = ops.max_2x2(lin)
+        ycocg, lo, hi, prev_weight, mv = self._render_stage(frame, jit, ops.near_far(frame))
         self._prev_jitter = jit
 
         # ---- display size ----
@@ -214,6 +195,37 @@ class TemporalUpscaler(Upscaler):
             history = new.reshape(1, 3, big_h, big_w)
         self._history = history
         return ops.ycocg_to_rgb8(history[0])
+
+    def _render_stage(
+        self, frame: RenderFrame, jit: tuple[float, float], nf: tuple[float, float] | None
+    ) -> tuple[torch.Tensor, ...]:
+        """YCoCg samples, their 3x3 box, the trusted accumulated weight and the dilated
+        motion; keeps this frame's 2x2 max depth for the next one."""
+        p = self.params
+        dev = ops.input_device(frame, self.device)
+        dt = self.dtype
+        h, w = frame.depth.shape[:2]
+        ycocg = ops.rgb8_to_ycocg(ops.as_tensor(frame.color, dev), dt)
+        if p.presharpen > 0.0:
+            ycocg = ops.sharpen(ycocg, p.presharpen)
+        lo, hi = ops.box_3x3(ycocg)
+        depth = ops.as_tensor(frame.depth, dev).to(dt)
+        depth = torch.nan_to_num(depth, nan=1.0, posinf=1.0, neginf=0.0).clamp_(0.0, 1.0)
+        motion = ops.as_tensor(frame.motion, dev).to(dt)
+        lim = 4.0 * max(w, h)
+        motion = torch.nan_to_num(motion, nan=0.0, posinf=0.0, neginf=0.0).clamp_(-lim, lim)
+        if nf is None:
+            lin = depth
+        else:
+            near, far = nf
+            lin = torch.reciprocal(depth.mul(-(far - near) / (near * far)).add_(1.0 / near))
+        mask = ops.as_tensor(frame.dynamic_mask, dev)
+        # Most frames have no moving object: no need to dilate an empty mask.
+        mask_d = ops.box_3x3(mask.to(dt).unsqueeze(0))[1][0] if bool(mask.any()) else None
+        lin_d, mv = ops.closest_3x3(lin, motion.permute(2, 0, 1))
+        prev_weight = self._reproject_weight(lin_d, mv, mask_d, jit)
+        self._prev_far = ops.max_2x2(lin)
+        return ycocg, lo, hi, prev_weight, mv
 
     def _fetch_history(
         self, history: torch.Tensor, motion: torch.Tensor, layout: torch.Size, w: int, h: int

@@ -14,6 +14,7 @@ BENCHMARKS: dict[str, str] = {
     "encode": "x264 + CMAF per frame: ms, bytes, PSNR, keyframe cost, mux delay",
     "latency": "render_end -> client_present per stage, real stack + headless Chromium",
     "serve": "upcast serve with N sessions: fps each holds, before and after a worker is killed",
+    "compile_start": "upscaler compile=True at a worker start: inductor cache cold and warm",
 }
 
 

@@ -20,6 +20,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--metrics-port", type=int, default=0, help="Prometheus /metrics TCP port (0: off)"
     )
+    parser.add_argument(
+        "--compile",
+        action="store_true",
+        help="torch.compile easu and easu_rcas (the first frame of a size waits for it)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -37,6 +42,7 @@ def run(args: argparse.Namespace) -> int:
             threads=args.threads,
             newest=args.newest,
             metrics_port=args.metrics_port,
+            compile=args.compile,
         )
     except ValidationError as exc:
         print(format_validation_error("worker", exc), file=sys.stderr)
