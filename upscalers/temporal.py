@@ -119,7 +119,14 @@ class TemporalUpscaler(Upscaler):
         if device is None:
             device = "cuda" if torch.cuda.is_available() else "cpu"
         self.device = torch.device(device)
-        self.dtype = dtype
+        # ``dtype`` is how the history is stored (float16 halves its memory traffic on a
+        # GPU); the arithmetic is float32 whatever it is. float16 positions are off by up
+        # to 0.6 px at 1280 px (10 bits of mantissa), and a history fetched there and
+        # blended back every frame drifts: measured, up to 0.2 of full scale after six
+        # frames of motion. float32 arithmetic with float16 storage stays within a few
+        # 8-bit steps (tests/test_temporal.py).
+        self.storage_dtype = dtype
+        self.dtype = torch.float32
         # Display-size YCoCg history (1, 3, H, W) and, at render size, the accumulated
         # sample weight (h, w) and the 2x2 max of linear depth, both of the last frame.
         self._history: torch.Tensor | None = None
@@ -145,7 +152,7 @@ class TemporalUpscaler(Upscaler):
         display = Size(int(display_size[0]), int(display_size[1]))
         h, w = frame.depth.shape[:2]
         render = Size(w, h)
-        key = (render, display, dev, dt)
+        key = (render, display, dev, self.storage_dtype)
         if key != self._key:
             self.reset()
             self._key = key
@@ -175,7 +182,7 @@ class TemporalUpscaler(Upscaler):
             prev = inputs.cur.clone()
         elif bool(mv.abs().max() == 0.0):
             # Nothing moved: the fetch would be the identity.
-            prev = torch.nan_to_num(ops.to_planar(history[0], scale), nan=0.0)
+            prev = torch.nan_to_num(ops.to_planar(history[0], scale).to(dt), nan=0.0)
         else:
             prev = self._fetch_history(history, inputs.motion, layout, w, h)
             # Non-finite history (never written by this code) is dropped before the
@@ -189,10 +196,10 @@ class TemporalUpscaler(Upscaler):
         new = prev.lerp_(inputs.cur, alpha)
         if scale > 1:
             if history is None:
-                history = torch.empty((1, 3, big_h, big_w), device=dev, dtype=dt)
+                history = torch.empty((1, 3, big_h, big_w), device=dev, dtype=self.storage_dtype)
             ops.to_planar(history[0], scale).copy_(new)
         else:
-            history = new.reshape(1, 3, big_h, big_w)
+            history = new.reshape(1, 3, big_h, big_w).to(self.storage_dtype)
         self._history = history
         return ops.ycocg_to_rgb8(history[0])
 
@@ -234,7 +241,8 @@ class TemporalUpscaler(Upscaler):
         (3, *layout). The sub-pixel planes of an integer scale go in as a batch: the CPU
         grid_sample kernel splits its work over the batch, not within one image."""
         assert self._base_grid is not None
-        dev, dt = history.device, history.dtype
+        dev, dt = history.device, self.dtype
+        history = history.to(dt)  # float32 positions need a float32 image to sample
         step = torch.tensor([2.0 / w, 2.0 / h], device=dev, dtype=dt)
         grid = self._grid_buffer
         if grid is None or grid.shape != self._base_grid.shape:
@@ -284,8 +292,8 @@ class TemporalUpscaler(Upscaler):
             assert self._history is not None
             h = self._history
             bufs = self._neighbour_bufs = (
-                torch.empty(shape, device=h.device, dtype=h.dtype),
-                torch.empty(shape, device=h.device, dtype=h.dtype),
+                torch.empty(shape, device=h.device, dtype=self.dtype),
+                torch.empty(shape, device=h.device, dtype=self.dtype),
             )
         return bufs
 
