@@ -1,8 +1,11 @@
-"""Process liveness, as the rings need it to take slots back from dead peers."""
+"""Process liveness (the rings take slots back from dead peers) and stopping a child."""
 
 from __future__ import annotations
 
 import os
+import signal
+import subprocess
+from typing import Any
 
 
 def pid_alive(pid: int) -> bool:
@@ -29,3 +32,18 @@ def pid_alive(pid: int) -> bool:
     except PermissionError:
         return True
     return True
+
+
+def stop_child(
+    proc: subprocess.Popen[Any], grace_s: float, sig: signal.Signals = signal.SIGTERM
+) -> None:
+    """Ask a child to stop with ``sig`` (it cleans up its own children, rings and
+    sockets), wait ``grace_s``, then kill it; returns once it is reaped."""
+    if proc.poll() is not None:
+        return
+    proc.send_signal(sig)
+    try:
+        proc.wait(grace_s)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait(5)

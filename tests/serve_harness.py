@@ -5,7 +5,6 @@ from __future__ import annotations
 import contextlib
 import json
 import os
-import signal
 import subprocess
 import sys
 import tempfile
@@ -19,6 +18,7 @@ from typing import Any
 from server.auth import AuthKey, generate_key, load_key
 from server.auth.minting import session_tokens
 from server.moq_link import with_token
+from server.process import stop_child
 
 ROOT = Path(__file__).resolve().parents[1]
 # 160x90 -> 320x180 at 15 fps: small enough for 4 sessions on a 2-core CI machine.
@@ -94,11 +94,5 @@ def serve(port: int, *args: str, up_timeout_s: float = 120.0) -> Iterator[Served
         )
         yield served
     finally:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGTERM)
-            try:
-                proc.wait(40)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait(5)
+        stop_child(proc, 40)
         tmp.cleanup()

@@ -23,6 +23,7 @@ import pytest
 from PIL import Image
 
 from server.frame import Size
+from server.process import stop_child
 from server.ring import SHM_DIR
 from server.ring_frames import create_display_ring
 from server.timing import Stage
@@ -133,13 +134,7 @@ def session(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Session]:
         assert "Ctrl-C" in banner
         yield sess
     finally:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
-            try:
-                proc.wait(20)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait(5)
+        stop_child(proc, 20, signal.SIGINT)
 
 
 def test_page_has_stream_and_controls(session: Session) -> None:

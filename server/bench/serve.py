@@ -31,6 +31,7 @@ from typing import Any
 from server.bench.report import BenchReport
 from server.moq.events import Event, FrameReceived
 from server.moq_link import MoqLink, connect_moq
+from server.process import stop_child
 
 ROOT = Path(__file__).resolve().parents[2]
 UP_TIMEOUT_S = 240.0
@@ -156,13 +157,7 @@ async def _measure(args: argparse.Namespace, report: BenchReport) -> None:
     finally:
         if link is not None and not link.closed:
             link.wt.close(0, "bench over")
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGTERM)
-            try:
-                proc.wait(60)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait(5)
+        stop_child(proc, 60)
 
 
 def _summarize(report: BenchReport, target_fps: float) -> None:
