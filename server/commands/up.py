@@ -156,9 +156,8 @@ async def _main(
         plan = SessionPlan(
             config=config,
             stream=stream,
-            relay_url=with_token(
-                f"http://{_session_host(stream.host)}:{endpoint.port}/", tokens.publisher
-            ),
+            relay_url=f"http://{_session_host(stream.host)}:{endpoint.port}/",
+            token=tokens.publisher,
             metrics_port=stream.session_metrics_port,
             duration_s=args.duration,
         )

@@ -36,7 +36,8 @@ class SessionFailed(RuntimeError):
 class SessionPlan:
     config: SessionConfig
     stream: StreamConfig  # broadcast, bitrate, keyframe interval
-    relay_url: str  # where to publish (a token, if any, already in its query)
+    relay_url: str  # where to publish
+    token: str | None = None  # the publisher's JWT (None: an open relay)
     # The session's Prometheus port; the game's and the worker's are the next two
     # (one block of three per session). 0 = all off.
     metrics_port: int = 0
@@ -90,6 +91,7 @@ async def run_game_session(
                 metrics_port = 0
         settings = StreamSettings(
             relay_url=plan.relay_url,
+            token=plan.token,
             broadcast=stream.broadcast,
             fps=config.fps,
             bitrate=None if stream.bitrate_kbps is None else stream.bitrate_kbps * 1000,

@@ -52,6 +52,7 @@ async def _run(spec: SessionSpec) -> int:
         config=spec.config,
         stream=spec.stream,
         relay_url=spec.relay_url,
+        token=spec.token,
         metrics_port=spec.metrics_port,
         cert_hash_hex=spec.cert_hash_hex,
     )

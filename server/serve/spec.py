@@ -16,7 +16,8 @@ class SessionSpec(BaseModel):
     index: int  # 1-based
     config: SessionConfig  # its name is unique per start: rings and sockets never collide
     stream: StreamConfig
-    relay_url: str  # with ?jwt=<token> when the supervisor minted one
+    relay_url: str
+    token: str | None = None  # the publisher's JWT when the supervisor minted one
     cert_hash_hex: str | None = None
     metrics_port: int = 0
     status_path: Path  # the session writes its state here (atomically, twice a second)

@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from server.serve.spec import SessionSpec
-from server.serve.tokens import TokenMinter, no_token, with_token
+from server.serve.tokens import TokenMinter, no_token
 from server.stack import SessionConfig, session_files
 from server.stream_config import StreamConfig
 
@@ -95,7 +95,8 @@ class Supervisor:
             index=s.index,
             config=s.config.model_copy(update={"name": s.name}),
             stream=s.stream,
-            relay_url=with_token(self.relay_url, self.token_for(s.broadcast)),
+            relay_url=self.relay_url,
+            token=self.token_for(s.broadcast),
             cert_hash_hex=self.cert_hash_hex,
             metrics_port=s.metrics_port,
             status_path=s.status_path,
