@@ -42,5 +42,10 @@ class StreamConfig(BaseModel):
         return v
 
     @property
+    def bitrate_bps(self) -> int | None:
+        """The encoder's bitrate in bit/s (None: its default, scaled by size and fps)."""
+        return None if self.bitrate_kbps is None else self.bitrate_kbps * 1000
+
+    @property
     def session_metrics_port(self) -> int:
         return self.port + 1 if self.metrics_port is None else self.metrics_port

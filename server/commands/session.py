@@ -13,6 +13,10 @@ import logging
 import signal
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from server.stream_config import StreamConfig
 
 log = logging.getLogger(__name__)
 
@@ -82,10 +86,10 @@ def run(args: argparse.Namespace) -> int:
     from server.event_loop import install_uvloop
 
     install_uvloop()
-    return asyncio.run(_main(args))
+    return asyncio.run(_main(args, stream))
 
 
-async def _main(args: argparse.Namespace) -> int:
+async def _main(args: argparse.Namespace, stream: StreamConfig) -> int:
     from prometheus_client import CollectorRegistry, start_http_server
 
     from server.frame import Size
@@ -107,7 +111,7 @@ async def _main(args: argparse.Namespace) -> int:
             relay_url=args.relay,
             broadcast=args.broadcast,
             fps=args.fps,
-            bitrate=None if args.bitrate_kbps is None else args.bitrate_kbps * 1000,
+            bitrate=stream.bitrate_bps,
             gop_seconds=args.gop_seconds,
             cert_hash_hex=args.cert_sha256,
             token=args.token,

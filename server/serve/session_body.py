@@ -94,7 +94,7 @@ async def run_game_session(
             token=plan.token,
             broadcast=stream.broadcast,
             fps=config.fps,
-            bitrate=None if stream.bitrate_kbps is None else stream.bitrate_kbps * 1000,
+            bitrate=stream.bitrate_bps,
             gop_seconds=stream.gop_seconds,
             cert_hash_hex=plan.cert_hash_hex,
             upscaler=config.upscaler,
