@@ -10,12 +10,20 @@ from typing import Annotated
 from pydantic import AfterValidator
 
 from server.frame import Size
-from upscalers import registry
+from upscalers import framegen, registry
 
 
 def _known_upscaler(name: str) -> str:
     if name not in registry.available():
         raise ValueError(f"unknown upscaler {name!r}; allowed: {', '.join(registry.available())}")
+    return name
+
+
+def _known_predictor(name: str) -> str:
+    if name not in framegen.available():
+        raise ValueError(
+            f"unknown frame predictor {name!r}; allowed: {', '.join(framegen.available())}"
+        )
     return name
 
 
@@ -25,4 +33,5 @@ def _size_text(text: str) -> str:
 
 
 UpscalerName = Annotated[str, AfterValidator(_known_upscaler)]
+PredictorName = Annotated[str, AfterValidator(_known_predictor)]
 SizeText = Annotated[str, AfterValidator(_size_text)]

@@ -135,13 +135,23 @@ def worker_registry(worker: UpscaleWorker) -> CollectorRegistry:
         yield _counter("upcast_worker_frames_upscaled", "Frames upscaled into ring U", s.frames)
         dropped = CounterMetricFamily(
             "upcast_worker_frames_dropped",
-            "Frames not upscaled (upscale_error, ring_u_full, truncated in ring R)",
+            "Frames not presented (upscale_error, ring_u_full, truncated in ring R, "
+            "prediction_refused: a predicted tick with no full render to predict from, "
+            "prediction_error)",
             labels=["reason"],
         )
         dropped.add_metric(["upscale_error"], s.errors)
         dropped.add_metric(["ring_u_full"], s.output_drops)
         dropped.add_metric(["truncated"], worker.ring_in.counters().rejected)
+        pred = worker.prediction.stats
+        dropped.add_metric(["prediction_refused"], pred.refused)
+        dropped.add_metric(["prediction_error"], pred.errors)
         yield dropped
+        yield _counter(
+            "upcast_worker_frames_predicted",
+            "Predicted frames (frame generation) presented into ring U; included in upscaled",
+            pred.predicted,
+        )
         yield _counter(
             "upcast_worker_frames_sanitized",
             "Frames with NaN/Inf G-buffer or camera values replaced",

@@ -20,13 +20,15 @@ from typing import Any
 import torch
 from pydantic import BaseModel, ConfigDict, Field
 
-from server.config_types import SizeText, UpscalerName
+from server.config_types import PredictorName, SizeText, UpscalerName
 from server.control import ControlServer, GetStatus, SetUpscaler, parse_message
-from server.frame import Size
+from server.frame import FrameFlags, Size
 from server.metrics_process import serve_metrics, worker_registry
 from server.ring import FrameRing
 from server.ring_frames import attach_display_ring, attach_render_ring, render_frame_of, write_meta
 from server.timing import Stage, stamp
+from server.worker_prediction import PredictionStage
+from upscalers import framegen
 from upscalers.host import UpscalerHost
 from upscalers.output import quantize_into
 
@@ -49,6 +51,11 @@ class WorkerConfig(BaseModel):
     metrics_port: int = Field(
         default=0, ge=0, le=65535, description="Prometheus /metrics TCP port (0: off)"
     )
+    predictor: PredictorName = Field(
+        default="mpe",
+        description="frame predictor for the game's PREDICTED ticks (frame generation): "
+        + ", ".join(framegen.available()),
+    )
     compile: bool = Field(
         default=False,
         description="torch.compile the upscalers that have a compiled path (first frame "
@@ -58,6 +65,7 @@ class WorkerConfig(BaseModel):
 
 @dataclass
 class WorkerStats:
+    # frames: every frame presented into ring U, rendered or predicted.
     frames: int = 0
     errors: int = 0
     output_drops: int = 0
@@ -76,8 +84,11 @@ class UpscaleWorker:
         host: UpscalerHost,
         *,
         newest: bool = False,
+        prediction: PredictionStage | None = None,
     ) -> None:
         ring_out.require_fits(*host.display_size, what="display size")
+        # Turns the game's PREDICTED ticks (only moving objects drawn) into whole frames.
+        self.prediction = prediction or PredictionStage()
         self.ring_in = ring_in
         self.ring_out = ring_out
         self.host = host
@@ -97,6 +108,14 @@ class UpscaleWorker:
             frame = render_frame_of(lease)
             meta = frame.meta
             stamp(meta.stamps, Stage.UPSCALE_START)
+            if meta.flags & FrameFlags.PREDICTED:
+                # upscale_start..end of a predicted frame spans prediction + composite + upscale.
+                predicted = self.prediction.predict(frame)
+                if predicted is None:
+                    return True  # counted in prediction.stats; the stream skips the tick
+                frame = predicted
+            else:
+                self.prediction.rendered(frame)
             try:
                 result = self.host.upscale(frame)
             except Exception:
@@ -147,6 +166,10 @@ class UpscaleWorker:
             "errors": self.stats.errors,
             "output_drops": self.stats.output_drops,
             "switches": self.stats.switches,
+            "predictor": self.prediction.predictor_name,
+            "predicted": self.prediction.stats.predicted,
+            "prediction_refused": self.prediction.stats.refused,
+            "prediction_errors": self.prediction.stats.errors,
             "sanitized_values": self.host.sanitized_values,
             "sanitized_frames": self.host.sanitized_frames,
         }
@@ -173,7 +196,9 @@ def run_worker(config: WorkerConfig, stop: threading.Event | None = None) -> int
     ring_in = attach_render_ring(config.ring_in, wait_s=config.attach_timeout_s)
     ring_out = attach_display_ring(config.ring_out, wait_s=config.attach_timeout_s)
     host = UpscalerHost(config.upscaler, Size.parse(config.display_size), compile=config.compile)
-    worker = UpscaleWorker(ring_in, ring_out, host, newest=config.newest)
+    worker = UpscaleWorker(
+        ring_in, ring_out, host, newest=config.newest, prediction=PredictionStage(config.predictor)
+    )
     serve_metrics(worker_registry(worker), config.metrics_port, "worker")
     control = ControlServer(config.control_path) if config.control_path else None
     log.info(

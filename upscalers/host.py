@@ -23,6 +23,8 @@ from upscalers.sanitize import SanitizeReport, sanitize_frame
 log = logging.getLogger(__name__)
 
 _WARN_EVERY_S = 5.0
+# What upscales predicted frames while a temporal method runs (see UpscalerHost.upscale).
+PREDICTED_STAND_IN = "bicubic"
 
 
 class UpscalerHost:
@@ -42,6 +44,8 @@ class UpscalerHost:
         self.upscaler: Upscaler = self._create(name, options)
         self.display_size = display_size
         self._last_input_size: Size | None = None
+        # Spatial stand-in for predicted frames while a temporal method runs (see upscale).
+        self._predicted_stand_in: Upscaler | None = None
         self.sanitized_values = 0
         self.sanitized_frames = 0
         self._last_warning = 0.0
@@ -71,10 +75,24 @@ class UpscalerHost:
         frame, report = sanitize_frame(frame)
         if report.total:
             self._note_sanitized(frame.meta.frame_id, report)
+        if frame.meta.flags & FrameFlags.PREDICTED and self.upscaler.temporal:
+            return self._upscale_predicted_stand_in(frame)
         if frame.meta.flags & FrameFlags.RESET or frame.size != self._last_input_size:
             self.upscaler.reset()
             self._last_input_size = frame.size
         return self.upscaler.upscale(frame, self.display_size)
+
+    def _upscale_predicted_stand_in(self, frame: RenderFrame) -> torch.Tensor:
+        """A predicted frame has no jitter and no motion from the frame before it, so it
+        must not enter a temporal method's history; it gets a spatial method instead."""
+        if self._predicted_stand_in is None:
+            log.warning(
+                "frame generation with temporal upscaler %s: predicted frames use %s",
+                self.upscaler.name,
+                PREDICTED_STAND_IN,
+            )
+            self._predicted_stand_in = registry.create(PREDICTED_STAND_IN)
+        return self._predicted_stand_in.upscale(frame, self.display_size)
 
     def _note_sanitized(self, frame_id: int, report: SanitizeReport) -> None:
         self.sanitized_values += report.total

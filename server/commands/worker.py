@@ -21,6 +21,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--metrics-port", type=int, default=0, help="Prometheus /metrics TCP port (0: off)"
     )
     parser.add_argument(
+        "--predictor",
+        default="mpe",
+        help="frame predictor for the game's predicted ticks (frame generation; default: mpe)",
+    )
+    parser.add_argument(
         "--compile",
         action="store_true",
         help="torch.compile easu and easu_rcas (the first frame of a size waits for it)",
@@ -43,6 +48,7 @@ def run(args: argparse.Namespace) -> int:
             newest=args.newest,
             metrics_port=args.metrics_port,
             compile=args.compile,
+            predictor=args.predictor,
         )
     except ValidationError as exc:
         print(format_validation_error("worker", exc), file=sys.stderr)

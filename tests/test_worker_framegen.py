@@ -1,0 +1,197 @@
+"""The worker's frame-generation stage: PREDICTED ticks in ring R become presented frames.
+
+The game's dynamic layer for a predicted tick is built here from a full render
+of that tick (its dynamic pixels), which is what ``Renderer.render_dynamic``
+draws wherever a moving object is visible.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+
+from server.frame import FrameFlags, FrameMeta, RenderFrame, Size
+from server.render.renderer import Renderer, RenderTargets
+from server.ring import RingMode
+from server.ring_frames import (
+    create_display_ring,
+    create_render_ring,
+    display_frame_of,
+    write_meta,
+)
+from server.worker import UpscaleWorker
+from server.worker_prediction import PredictionStage
+from upscalers.framegen import Prediction
+from upscalers.framegen.compose import composite_dynamic
+from upscalers.host import UpscalerHost
+from upscalers.metrics import psnr
+from upscalers.output import to_uint8
+
+RENDER = Size(160, 90)
+DISPLAY = Size(320, 180)
+FPS = 30.0  # logic rate: full renders at 15, predicted ticks between them
+
+
+def dynamic_layer(full: RenderFrame, prev_full: RenderFrame) -> RenderFrame:
+    """What the game sends for a predicted tick: only the moving objects of ``full``."""
+    mask = full.dynamic_mask != 0
+    meta = dataclasses.replace(
+        full.meta,
+        flags=FrameFlags.PREDICTED,
+        camera=dataclasses.replace(
+            full.meta.camera,
+            prev_view=prev_full.meta.camera.view,
+            prev_proj=prev_full.meta.camera.proj,
+        ),
+        stamps=full.meta.stamps.copy(),
+    )
+    return RenderFrame(
+        np.where(mask[..., None], full.color, 0).astype(np.uint8),
+        np.where(mask, full.depth, 1.0).astype(np.float32),
+        np.zeros_like(full.motion),
+        full.dynamic_mask.copy(),
+        meta,
+    )
+
+
+def ticks(scene: str, count: int) -> tuple[list[RenderFrame], list[RenderFrame]]:
+    """(what the game sends, the full render of every tick for reference)."""
+    renderer = Renderer(scene, RENDER, scale=DISPLAY.width / RENDER.width, jitter=False)
+    truth: list[RenderFrame] = []
+    sent: list[RenderFrame] = []
+    last_full_t: float | None = None
+    for i in range(count):
+        t = i / FPS
+        prev = last_full_t if i % 2 == 0 else None
+        frame = renderer.render(i, t, RenderTargets.allocate(RENDER), prev_t=prev)
+        truth.append(frame)
+        if i % 2 == 0:
+            sent.append(frame)
+            last_full_t = t
+        else:
+            sent.append(dynamic_layer(frame, truth[i - 1]))
+    return sent, truth
+
+
+class Pipe:
+    """Ring R -> UpscaleWorker (in process) -> ring U."""
+
+    def __init__(self, name: str, upscaler: str = "bilinear") -> None:
+        self.ring_r = create_render_ring(f"{name}-r", RENDER, mode=RingMode.LOSSLESS, slots=8)
+        self.ring_u = create_display_ring(f"{name}-u", DISPLAY, mode=RingMode.LOSSLESS, slots=8)
+        self.worker = UpscaleWorker(
+            self.ring_r, self.ring_u, UpscalerHost(upscaler, DISPLAY), prediction=PredictionStage()
+        )
+        self.ring_r.attach_as_producer()
+        self.ring_u.attach_as_consumer()
+
+    def run(self, frames: list[RenderFrame]) -> list[tuple[FrameMeta, np.ndarray]]:
+        out = []
+        for frame in frames:
+            lease = self.ring_r.acquire_write(5.0)
+            assert lease is not None
+            views = lease.views(*frame.size)
+            for key in ("color", "depth", "motion", "dynamic_mask"):
+                views[key][...] = getattr(frame, key)
+            write_meta(lease.header, frame.meta)
+            lease.commit()
+            assert self.worker.process_next(5.0)
+            got = self.ring_u.acquire_read(0.0)
+            if got is not None:
+                with got:
+                    shown = display_frame_of(got)
+                    out.append((shown.meta, shown.color.copy()))
+        return out
+
+    def close(self) -> None:
+        for ring in (self.ring_r, self.ring_u):
+            ring.unlink()
+            ring.close()
+
+
+@pytest.fixture
+def pipe(ring_name: str) -> Iterator[Pipe]:
+    p = Pipe(ring_name)
+    yield p
+    p.close()
+
+
+def test_predicted_ticks_are_presented_flagged_and_close_to_the_render(pipe: Pipe) -> None:
+    sent, truth = ticks("moving_objects", 8)
+    shown = pipe.run(sent)
+    assert [m.frame_id for m, _ in shown] == list(range(8))
+    predicted = [bool(m.flags & FrameFlags.PREDICTED) for m, _ in shown]
+    assert predicted == [i % 2 == 1 for i in range(8)]
+    reference = UpscalerHost("bilinear", DISPLAY)
+    for i in range(1, 8, 2):
+        want = to_uint8(reference.upscale(truth[i]))
+        repeat = to_uint8(reference.upscale(truth[i - 1]))
+        got = shown[i][1]
+        # The prediction (with the game's moving objects over it) is far closer to what
+        # the game would have rendered than showing the last render again.
+        assert psnr(want, got) > psnr(want, repeat) + 2.0, i
+        assert psnr(want, got) > 35.0, i
+    stats = pipe.worker.prediction.stats
+    assert (stats.predicted, stats.refused, stats.errors) == (4, 0, 0)
+    assert pipe.worker.status()["predicted"] == 4
+
+
+def test_a_predicted_tick_before_any_render_is_skipped_not_fatal(pipe: Pipe) -> None:
+    sent, _ = ticks("slow_pan", 4)
+    shown = pipe.run([sent[1], *sent])
+    # The first predicted tick had nothing to predict from; the rest went through.
+    assert [m.frame_id for m, _ in shown] == [0, 1, 2, 3]
+    assert pipe.worker.prediction.stats.refused == 1
+
+
+def test_no_prediction_across_a_cut(pipe: Pipe) -> None:
+    sent, _ = ticks("slow_pan", 4)
+    cut = dataclasses.replace(sent[1].meta, flags=FrameFlags.PREDICTED | FrameFlags.RESET)
+    shown = pipe.run([sent[0], dataclasses.replace(sent[1], meta=cut)])
+    assert [m.frame_id for m, _ in shown] == [0]
+    assert pipe.worker.prediction.stats.refused == 1
+
+
+def test_temporal_history_never_sees_a_predicted_frame(ring_name: str) -> None:
+    sent, _ = ticks("slow_pan", 6)
+    p = Pipe(ring_name, upscaler="temporal")
+    try:
+        shown = p.run(sent)
+    finally:
+        p.close()
+    # Rendered frames come out exactly as if the predicted ticks had never been there.
+    alone = UpscalerHost("temporal", DISPLAY)
+    for i in (0, 2, 4):
+        assert np.array_equal(shown[i][1], to_uint8(alone.upscale(sent[i]))), i
+    assert all(bool(m.flags & FrameFlags.PREDICTED) for m, _ in shown[1::2])
+
+
+def test_composite_depth_tests_the_layer_against_the_prediction() -> None:
+    h, w = 4, 5
+    pred = Prediction(
+        color=np.full((h, w, 3), 10, np.uint8),
+        holes=np.zeros((h, w), bool),
+        depth=np.full((h, w), 0.5, np.float32),
+        source_frame_id=0,
+        filled=np.zeros((h, w), bool),
+    )
+    depth = np.full((h, w), 1.0, np.float32)
+    mask = np.zeros((h, w), np.uint8)
+    depth[0, 0], mask[0, 0] = 0.4, 1  # in front: drawn
+    depth[0, 1], mask[0, 1] = 0.6, 1  # behind the static surface: hidden
+    depth[0, 2], mask[0, 2] = np.nan, 1  # corrupt: never punches through
+    depth[0, 3] = 0.1  # not in the mask: ignored
+    meta = FrameMeta(7, ticks("static", 1)[0][0].meta.camera, (0.0, 0.0), FrameFlags.PREDICTED)
+    layer = RenderFrame(
+        np.full((h, w, 3), 200, np.uint8), depth, np.zeros((h, w, 2), np.float32), mask, meta
+    )
+    out = composite_dynamic(pred, layer)
+    assert out.color[0, 0, 0] == 200 and out.depth[0, 0] == pytest.approx(0.4)
+    assert out.color[0, 1, 0] == 10 and out.depth[0, 1] == pytest.approx(0.5)
+    assert out.color[0, 2, 0] == 10 and out.color[0, 3, 0] == 10
+    assert out.dynamic_mask.sum() == 1 and out.meta.frame_id == 7
+    with pytest.raises(ValueError, match="dynamic layer"):
+        composite_dynamic(pred, dataclasses.replace(layer, color=layer.color[:2], depth=depth[:2]))
