@@ -20,7 +20,7 @@ from pathlib import Path
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from server.config_types import SizeText, UpscalerName
+from server.config_types import PredictorName, SizeText, UpscalerName
 from server.frame import Size
 from server.ring import SHM_DIR, FrameRing
 from server.ring_frames import create_display_ring, create_render_ring
@@ -37,8 +37,20 @@ class SessionConfig(BaseModel):
     scene: str = Field(default="default", description="scene preset of the reference game")
     render_size: SizeText = Field(default="640x360", description="game render size WIDTHxHEIGHT")
     display_size: SizeText = Field(default="1280x720", description="upscaled size WIDTHxHEIGHT")
-    fps: float = Field(default=60.0, gt=0, le=240, description="game frame rate")
+    fps: float = Field(
+        default=60.0,
+        gt=0,
+        le=240,
+        description="game logic and stream frame rate (with frame generation the game "
+        "renders every other frame and the worker predicts the rest)",
+    )
     upscaler: UpscalerName = Field(default="bilinear", description="initial upscaler")
+    frame_generation: bool = Field(
+        default=False, description="start with frame generation on (switchable at run time)"
+    )
+    predictor: PredictorName = Field(
+        default="mpe", description="frame predictor the worker uses for predicted frames"
+    )
     seed: int = Field(default=0, description="scene seed")
     game_threads: int = Field(default=1, ge=1, description="torch threads in the game")
     worker_threads: int = Field(default=1, ge=1, description="torch threads in the worker")
@@ -134,6 +146,7 @@ class LocalStack:
             "--scale", f"{c.scale:.6g}", "--fps", f"{c.fps:g}", "--seed", str(c.seed),
             "--threads", str(c.game_threads), "--input", str(self.input_path),
             "--jitter" if registry.is_temporal(c.upscaler) else "--no-jitter",
+            "--frame-generation" if c.frame_generation else "--no-frame-generation",
         ]  # fmt: skip
         if self._game_duration_s is not None:
             game_args += ["--duration", f"{self._game_duration_s:g}"]
@@ -161,6 +174,8 @@ class LocalStack:
                 str(c.worker_threads),
                 "--metrics-port",
                 str(self.worker_metrics_port),
+                "--predictor",
+                c.predictor,
             )
         )
 

@@ -16,6 +16,16 @@ def add_session_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--display-size", default="1280x720", help="upscaled size WIDTHxHEIGHT")
     parser.add_argument("--fps", type=float, default=60.0, help="game (and stream) frame rate")
     parser.add_argument("--upscaler", default="bilinear", help="initial upscaler")
+    parser.add_argument(
+        "--frame-generation",
+        action=argparse.BooleanOptionalAction,
+        default=False,
+        help="render every other frame and predict the rest (the stream keeps --fps; "
+        "switchable at run time; default: off)",
+    )
+    parser.add_argument(
+        "--predictor", default="mpe", help="frame predictor for frame generation (default: mpe)"
+    )
 
 
 def session_config_from(args: argparse.Namespace) -> SessionConfig | None:
@@ -31,4 +41,6 @@ def session_config_from(args: argparse.Namespace) -> SessionConfig | None:
         display_size=args.display_size,
         fps=args.fps,
         upscaler=args.upscaler,
+        frame_generation=args.frame_generation,
+        predictor=args.predictor,
     )

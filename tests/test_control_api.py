@@ -48,7 +48,10 @@ def test_refusals_say_why_and_carry_the_seq() -> None:
     router = _router(results, worker=Path("/nonexistent.ctl"))
     router.handle("g/input/a", b'{"type":"control","upscaler":"no_such","seq":7}')
     router.handle("g/input/a", b'{"type":"control","cache_policy":"reuse","seq":8}')
-    router.handle("g/input/a", b'{"type":"control","frame_generation":true,"scale":2,"seq":9}')
+    # One part refused refuses the whole request: frame_generation is not applied either.
+    router.handle(
+        "g/input/a", b'{"type":"control","frame_generation":true,"cache_policy":"off","seq":9}'
+    )
     router.handle("g/input/a", b'{"type":"control","scale":99,"seq":10}')  # out of range
     router.handle("g/input/a", b'{"type":"control","seq":11}')  # asks for nothing
     router.handle("g/input/a", b'{"type":"look","dx":"x","seq":12}')  # not control: no result
@@ -56,7 +59,7 @@ def test_refusals_say_why_and_carry_the_seq() -> None:
     reasons = [r.reason or "" for r in results]
     assert "unknown 'no_such'" in reasons[0] and "bilinear" in reasons[0]
     assert reasons[1].startswith("cache_policy: not available in this build")
-    assert reasons[2].startswith("frame_generation: not available in this build")
+    assert reasons[2].startswith("cache_policy: not available in this build")
     assert "scale" in reasons[3]
     assert "empty control request" in reasons[4]
     assert all(r.source == "g/input/a" for r in results)
@@ -70,6 +73,33 @@ def test_scale_alone_is_accepted_at_once() -> None:
     router.handle("g/input/a", b'{"type":"control","scale":1.5,"seq":3}')
     assert scales == [1.5]
     assert [(r.seq, r.accepted, r.requested) for r in results] == [(3, True, {"scale": 1.5})]
+
+
+def test_frame_generation_goes_to_the_game_and_into_the_stream_state(tmp_path: Path) -> None:
+    import socket
+
+    game = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    game.bind(str(tmp_path / "game.input"))
+    game.settimeout(2.0)
+    results: list[ControlResult] = []
+    switched: list[bool] = []
+    router = InputRouter(
+        game_input=tmp_path / "game.input",
+        worker_control=None,
+        request_keyframe=lambda: None,
+        on_frame_generation=switched.append,
+        on_control_result=results.append,
+    )
+    try:
+        router.handle("g/input/a", b'{"type":"control","frame_generation":true,"seq":5}')
+        router.handle("g/input/a", b'{"type":"control","frame_generation":false,"seq":6}')
+        sent = [json.loads(game.recv(1024)) for _ in range(2)]
+    finally:
+        game.close()
+    assert [m["frame_generation"] for m in sent] == [True, False]
+    assert [m["seq"] for m in sent] == [5, 6]
+    assert switched == [True, False]
+    assert [(r.seq, r.accepted) for r in results] == [(5, True), (6, True)]
 
 
 def test_an_upscaler_switch_is_accepted_only_when_the_worker_says_so(tmp_path: Path) -> None:

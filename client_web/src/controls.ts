@@ -1,4 +1,4 @@
-// Stream controls in the page: upscaler, scale factor, keyframe request.
+// Stream controls in the page: upscaler, scale factor, frame generation, keyframe request.
 // They travel on the same input track as keys and mouse (type "control"/"keyframe").
 import type { InputPublisher } from "./input";
 
@@ -7,7 +7,7 @@ export const SCALES = [1.5, 2, 3] as const;
 
 /** Keeps the selects on what the server runs, except right after the viewer changed one. */
 export interface Controls {
-	follow(upscaler: unknown, scale: unknown): void;
+	follow(upscaler: unknown, scale: unknown, frameGeneration: unknown): void;
 }
 
 // After a viewer's change the server takes a moment to switch; until then its records
@@ -35,6 +35,16 @@ export function mountControls(root: HTMLElement, publisher: InputPublisher): Con
 		publisher.send({ type: "control", scale: Number(scale.value) });
 	});
 
+	// Frame generation: the game renders every other frame and the server predicts the rest.
+	const frameGeneration = document.createElement("input");
+	frameGeneration.type = "checkbox";
+	frameGeneration.id = "frame-generation";
+	frameGeneration.title = "render every other frame, predict the rest (same stream fps)";
+	frameGeneration.addEventListener("change", () => {
+		changedAt = performance.now();
+		publisher.send({ type: "control", frame_generation: frameGeneration.checked });
+	});
+
 	const keyframe = document.createElement("button");
 	keyframe.type = "button";
 	keyframe.id = "keyframe";
@@ -42,9 +52,14 @@ export function mountControls(root: HTMLElement, publisher: InputPublisher): Con
 	keyframe.title = "ask the encoder for a keyframe now";
 	keyframe.addEventListener("click", () => publisher.send({ type: "keyframe" }));
 
-	root.append(label("upscaler", upscaler), label("scale", scale), keyframe);
+	root.append(
+		label("upscaler", upscaler),
+		label("scale", scale),
+		label("frame generation", frameGeneration),
+		keyframe,
+	);
 	return {
-		follow(serverUpscaler: unknown, serverScale: unknown): void {
+		follow(serverUpscaler: unknown, serverScale: unknown, serverFrameGeneration: unknown): void {
 			if (performance.now() - changedAt < HOLD_MS) return;
 			if (typeof serverUpscaler === "string" && serverUpscaler !== upscaler.value) {
 				if ([...upscaler.options].some((o) => o.value === serverUpscaler)) upscaler.value = serverUpscaler;
@@ -53,6 +68,7 @@ export function mountControls(root: HTMLElement, publisher: InputPublisher): Con
 				const match = [...scale.options].find((o) => Math.abs(Number(o.value) - serverScale) < 0.01);
 				if (match && match.value !== scale.value) scale.value = match.value;
 			}
+			if (typeof serverFrameGeneration === "boolean") frameGeneration.checked = serverFrameGeneration;
 		},
 	};
 }

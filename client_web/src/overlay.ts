@@ -34,7 +34,7 @@ export class Overlay {
 		const s = this.#stats();
 		const lines = [
 			`${s.status}${s.connected ? ` (${s.version})` : ""}`,
-			`fps ${s.fps}  ${s.width}x${s.height}  ${s.codec ?? "-"}`,
+			`fps ${s.fps}  ${s.width}x${s.height}  ${s.codec ?? "-"}  predicted ${Math.round(s.predictedShare * 100)}%`,
 			`frames recv ${s.framesReceived}  dec ${s.framesDecoded}  shown ${s.framesPresented}  dropped ${s.dropped}`,
 			`lost ${s.framesLost}  groups left early ${s.groupsSkipped}  frame id ${s.lastPresentedFrameId ?? "-"}  inputs ${s.inputsSent}`,
 			"",

@@ -36,6 +36,8 @@ export interface Stats {
 	codec?: string;
 	lastPresentedFrameId?: number;
 	lastPresentedPtsUs?: number;
+	/** Share of the last presented frames the server predicted (frame generation), 0..1. */
+	predictedShare: number;
 	inputsSent: number;
 	inputPath: string;
 	inputSubscribers: number;
@@ -69,6 +71,9 @@ function main(): void {
 		lastPresentedFrameId: undefined as number | undefined,
 		lastPresentedPtsUs: undefined as number | undefined,
 	};
+	// Whether each of the last PREDICTED_WINDOW presented frames was predicted.
+	const PREDICTED_WINDOW = 120;
+	const predictedFlags: boolean[] = [];
 
 	const error = (message: string): void => {
 		console.error("upcast:", message);
@@ -97,7 +102,9 @@ function main(): void {
 	};
 	timing.onPresented = (record, presentUs) => {
 		inputToPhoton.presented(record, presentUs);
-		controls.follow(record.upscaler, record.scale);
+		controls.follow(record.upscaler, record.scale, record.frame_generation);
+		predictedFlags.push(record.predicted === true);
+		if (predictedFlags.length > PREDICTED_WINDOW) predictedFlags.shift();
 	};
 
 	const decoder = new Decoder({
@@ -115,7 +122,7 @@ function main(): void {
 	const controlsRoot = document.getElementById("controls") as HTMLElement;
 	const controls = mountControls(controlsRoot, publisher);
 	if (viewOnly) {
-		for (const control of controlsRoot.querySelectorAll<HTMLSelectElement | HTMLButtonElement>("select, button")) {
+		for (const control of controlsRoot.querySelectorAll<HTMLSelectElement | HTMLButtonElement | HTMLInputElement>("select, button, input")) {
 			control.disabled = true;
 		}
 		const hint = document.querySelector(".hint");
@@ -136,6 +143,7 @@ function main(): void {
 		skippedUndecodable: decoder.skipped,
 		width: renderer.width,
 		height: renderer.height,
+		predictedShare: predictedFlags.length ? predictedFlags.filter(Boolean).length / predictedFlags.length : 0,
 		inputsSent: publisher.sent,
 		inputPath: publisher.path,
 		inputSubscribers: publisher.subscribers,

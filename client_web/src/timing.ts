@@ -17,6 +17,8 @@ export interface TimingRecord {
 	/** What the server runs now (player controls follow it). */
 	upscaler?: string;
 	scale?: number;
+	/** Whether the game renders every other frame and the server predicts the rest. */
+	frame_generation?: boolean;
 	/** Wall-clock microseconds since the epoch, by stage label. */
 	stamps: Record<string, number>;
 }

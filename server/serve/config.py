@@ -15,7 +15,7 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from server.config_types import SizeText, UpscalerName
+from server.config_types import PredictorName, SizeText, UpscalerName
 from server.stack import SessionConfig
 from server.stream_config import StreamConfig
 
@@ -35,6 +35,10 @@ class SessionOverride(BaseModel):
     display_size: SizeText | None = Field(default=None, description="display size WIDTHxHEIGHT")
     fps: float | None = Field(default=None, gt=0, le=240, description="game and stream fps")
     upscaler: UpscalerName | None = Field(default=None, description="initial upscaler")
+    frame_generation: bool | None = Field(
+        default=None, description="start with frame generation on (renders every other frame)"
+    )
+    predictor: PredictorName | None = Field(default=None, description="frame predictor")
     seed: int | None = Field(default=None, description="scene seed")
     bitrate_kbps: int | None = Field(default=None, description="video bitrate")
     gop_seconds: float | None = Field(default=None, description="keyframe interval (seconds)")

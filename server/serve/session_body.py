@@ -99,6 +99,7 @@ async def run_game_session(
             cert_hash_hex=plan.cert_hash_hex,
             upscaler=config.upscaler,
             scale=config.scale,
+            frame_generation=config.frame_generation,
         )
         session = StreamingSession(
             settings,

@@ -32,6 +32,7 @@ class StatusReporter:
             broadcast=self.session.settings.broadcast,
             upscaler=upscaler if isinstance(upscaler, str) else None,
             scale=float(scale) if isinstance(scale, int | float) else None,
+            frame_generation=fg if isinstance(fg := state.get("frame_generation"), bool) else None,
             fps=round(self.session.monitor.snapshot().fps, 2),
             frames=self.session.monitor.frames,
             last_control=self.last_control,

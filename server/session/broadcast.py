@@ -98,7 +98,7 @@ class GameBroadcast:
         self._published = 0  # frames published: the timing records' ``n``
         # What the stream runs now (upscaler, scale), sent in every timing record so a
         # page that joins later shows the server's settings, not its own defaults.
-        self.stream_state: dict[str, str | float] = {}
+        self.stream_state: dict[str, str | float | bool] = {}
 
     # -- session lifecycle ------------------------------------------------------------
 

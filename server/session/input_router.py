@@ -45,6 +45,7 @@ class InputRouter:
         request_keyframe: Callable[[], None],
         on_upscaler_set: Callable[[str], None] | None = None,
         on_scale_request: Callable[[float], None] | None = None,
+        on_frame_generation: Callable[[bool], None] | None = None,
         on_control_result: Callable[[ControlResult], None] | None = None,
     ) -> None:
         self.game_input = game_input
@@ -52,6 +53,7 @@ class InputRouter:
         self.request_keyframe = request_keyframe
         self.on_upscaler_set = on_upscaler_set
         self.on_scale_request = on_scale_request
+        self.on_frame_generation = on_frame_generation
         # Every control request ends in exactly one result (the status track shows it).
         self.on_control_result = on_control_result
         self.held: dict[str, HeldKeys] = {}
@@ -134,7 +136,7 @@ class InputRouter:
         requested = message.requested()
         problems = [f"{name}: {why}" for name, why in NOT_AVAILABLE.items() if name in requested]
         if not requested:
-            problems.append("empty control request: set upscaler and/or scale")
+            problems.append("empty control request: set upscaler, scale and/or frame_generation")
         if message.upscaler is not None:
             if message.upscaler not in registry.available():
                 problems.append(
@@ -162,6 +164,17 @@ class InputRouter:
             log.info("render scale %.3g requested by %s", message.scale, source)
             if self.on_scale_request is not None:
                 self.on_scale_request(message.scale)
+        if message.frame_generation is not None:
+            # The game alternates full renders with dynamic-only ticks; the worker
+            # predicts whatever arrives flagged PREDICTED, so it needs no message.
+            self._to_game(InputMessage(frame_generation=message.frame_generation, seq=message.seq))
+            log.info(
+                "frame generation %s requested by %s",
+                "on" if message.frame_generation else "off",
+                source,
+            )
+            if self.on_frame_generation is not None:
+                self.on_frame_generation(message.frame_generation)
         result = ControlResult(seq=message.seq, source=source, accepted=True, requested=requested)
         if message.upscaler is not None:
             # The worker answers the switch; the result waits for its reply.

@@ -48,6 +48,7 @@ class StreamSettings:
     cert_hash_hex: str | None = None  # pin the relay's certificate (else fetched over http)
     upscaler: str | None = None  # what the worker starts with (shown in the player)
     scale: float | None = None  # display / render size at start
+    frame_generation: bool | None = None  # whether the game starts predicting every other frame
     token: str | None = None  # JWT for the relay (sent as ?jwt=); None: an open relay
 
 
@@ -84,6 +85,7 @@ class StreamingSession:
             request_keyframe=self.encoder.request_keyframe,
             on_upscaler_set=self._upscaler_set,
             on_scale_request=self._scale_requested,
+            on_frame_generation=self._frame_generation_set,
         )
         self._on_upscaler_set = on_upscaler_set
         self._on_scale_request = on_scale_request
@@ -97,6 +99,8 @@ class StreamingSession:
             self.broadcast.stream_state["upscaler"] = settings.upscaler
         if settings.scale is not None:
             self.broadcast.stream_state["scale"] = round(settings.scale, 3)
+        if settings.frame_generation is not None:
+            self.broadcast.stream_state["frame_generation"] = settings.frame_generation
         self.link: MoqLink | None = None
         self.connected = asyncio.Event()
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -119,6 +123,9 @@ class StreamingSession:
         self.broadcast.stream_state["scale"] = round(scale, 3)
         if self._on_scale_request is not None:
             self._on_scale_request(scale)
+
+    def _frame_generation_set(self, on: bool) -> None:
+        self.broadcast.stream_state["frame_generation"] = on
 
     # -- running ---------------------------------------------------------------------
 

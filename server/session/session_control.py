@@ -19,7 +19,6 @@ STATUS_TRACK = "status"
 # Fields a request may carry that this build validates but cannot apply yet.
 NOT_AVAILABLE = {
     "cache_policy": "not available in this build (the upscaler cache lands with issue 5)",
-    "frame_generation": "not available in this build (frame generation lands with issue 6)",
 }
 
 
@@ -40,7 +39,9 @@ class SessionControl(BaseModel):
         default=None, description="upscaler cache policy (refused: not available in this build)"
     )
     frame_generation: bool | None = Field(
-        default=None, description="predict frames between rendered ones (refused: not available)"
+        default=None,
+        description="render every other frame and predict the rest from the last render "
+        "(the stream keeps its frame rate; the game's render rate halves)",
     )
 
     def requested(self) -> dict[str, object]:
@@ -69,6 +70,9 @@ class StatusRecord(BaseModel):
     broadcast: str
     upscaler: str | None = Field(description="the method the worker runs now")
     scale: float | None = Field(description="display / render size now")
+    frame_generation: bool | None = Field(
+        default=None, description="whether every other frame is predicted now"
+    )
     fps: float = Field(description="frames per second the session publishes (rolling)")
     frames: int = Field(description="frames published since the session started")
     last_control: ControlResult | None = Field(
