@@ -12,7 +12,8 @@ the worker predicts the static rest from that full render. A tick renders fully
 instead whenever a prediction from the last full render would be wrong or
 impossible: no full render on the tick before (first frame, a dropped or failed
 one), a scene cut since it, a new render size, or frame generation just
-switched on (the worker has nothing cached yet).
+switched on (the worker has nothing cached yet). So a PREDICTED frame's base is
+always the frame with id one less, whose camera is its prev camera.
 """
 
 from __future__ import annotations
