@@ -4,6 +4,16 @@ Game time is ``frame_index / fps`` (not the wall clock), so a run is
 deterministic for the same input sequence however the machine keeps up. The
 loop paces against absolute deadlines; a frame that starts late is counted and
 the schedule resyncs instead of rushing to catch up.
+
+Frame generation: ``fps`` stays the rate of game logic and of frames into
+ring R, but only every other tick is fully rendered. The tick after a full
+render draws only the moving objects (``render_dynamic``, flag PREDICTED) and
+the worker predicts the static rest from that full render. A tick renders fully
+instead whenever a prediction from the last full render would be wrong or
+impossible: no full render on the tick before (first frame, a dropped or failed
+one), a scene cut since it, a new render size, or frame generation just
+switched on (the worker has nothing cached yet). So a PREDICTED frame's base is
+always the frame with id one less, whose camera is its prev camera.
 """
 
 from __future__ import annotations
@@ -18,6 +28,7 @@ from typing import Any, Protocol
 
 from server.frame import RenderFrame, Size
 from server.render.renderer import RenderTargets
+from server.render.scene import Scene
 from server.ring import FrameRing
 from server.ring_frames import write_meta
 from server.timing import Stage, stamp
@@ -29,8 +40,13 @@ class FrameRenderer(Protocol):
     """What the loop needs of a renderer (server.render.Renderer is one)."""
 
     render_size: Size
+    scene: Scene
 
     def render(
+        self, frame_index: int, t: float, targets: RenderTargets | None = None
+    ) -> RenderFrame: ...
+
+    def render_dynamic(
         self, frame_index: int, t: float, targets: RenderTargets | None = None
     ) -> RenderFrame: ...
 
@@ -43,7 +59,9 @@ class FrameRenderer(Protocol):
 
 @dataclass
 class GameStats:
-    frames: int = 0
+    frames: int = 0  # into ring R, full or dynamic-only
+    frames_rendered: int = 0  # fully rendered
+    frames_predicted: int = 0  # only the moving objects drawn; the worker predicts the rest
     late_frames: int = 0
     ring_timeouts: int = 0
     render_errors: int = 0
@@ -58,6 +76,7 @@ class GameLoop:
         fps: float,
         *,
         display_size: Size | None = None,
+        frame_generation: bool = False,
     ) -> None:
         if fps <= 0:
             raise ValueError(f"fps must be positive, got {fps}")
@@ -72,8 +91,15 @@ class GameLoop:
         self.display_size = display_size
         self._wanted_scale: float | None = None
         self._wanted_jitter: bool | None = None
-        # Seconds per render, for the --metrics-port histogram (server/metrics_process.py).
+        self.frame_generation = frame_generation
+        self._wanted_frame_generation: bool | None = None
+        # (frame index, game time) of the last full render: what the worker predicts from.
+        self._last_full: tuple[int, float] | None = None
+        self._force_full = False
+        # Seconds per full render / per dynamic-only draw, for the --metrics-port
+        # histograms (server/metrics_process.py).
         self.on_render_time: Callable[[float], None] | None = None
+        self.on_dynamic_time: Callable[[float], None] | None = None
         ring.attach_as_producer()
 
     def push_input(self, event: Any, seq: int = 0) -> None:
@@ -91,6 +117,10 @@ class GameLoop:
         """Turn camera jitter on or off from the next frame on (thread-safe)."""
         self._wanted_jitter = on
 
+    def request_frame_generation(self, on: bool) -> None:
+        """Turn frame generation on or off from the next frame on (thread-safe)."""
+        self._wanted_frame_generation = on
+
     def _apply_scale(self) -> None:
         jitter, self._wanted_jitter = self._wanted_jitter, None
         if jitter is not None:
@@ -105,7 +135,26 @@ class GameLoop:
             return
         self.ring.require_fits(*size, what="render size")
         self.renderer.set_render_size(size, scale)
+        # A frame of the old size cannot be the base of a prediction at the new one.
+        self._force_full = True
         log.info("render scale %.3g: rendering at %s for %s", scale, size, self.display_size)
+
+    def _apply_frame_generation(self) -> None:
+        on, self._wanted_frame_generation = self._wanted_frame_generation, None
+        if on is None or on == self.frame_generation:
+            return
+        self.frame_generation = on
+        # Switched on: the worker may have cached nothing, so render fully first.
+        self._force_full = on
+        log.info("frame generation %s", "on" if on else "off")
+
+    def _dynamic_only(self, frame_index: int, t: float) -> bool:
+        """Whether this tick may draw only the moving objects (see the module doc)."""
+        last = self._last_full
+        if not self.frame_generation or self._force_full or last is None:
+            return False
+        last_index, last_t = last
+        return last_index == frame_index - 1 and not self.renderer.scene.cut_between(last_t, t)
 
     def _drain_inputs(self) -> None:
         while True:
@@ -121,7 +170,10 @@ class GameLoop:
         """Render one frame into ring R. False if no slot came in time (frame dropped)."""
         render_start = time.monotonic_ns(), time.time_ns()
         self._apply_scale()
+        self._apply_frame_generation()
         self._drain_inputs()
+        t = frame_index / self.fps
+        dynamic_only = self._dynamic_only(frame_index, t)
         # Real-time rings never make the game wait; a lossless ring may, briefly.
         lease = self.ring.acquire_write(timeout_s=1.0 / self.fps)
         if lease is None:
@@ -132,7 +184,10 @@ class GameLoop:
             # The renderer writes its final planes straight into the slot.
             targets = RenderTargets(**lease.views(size.width, size.height))
             try:
-                frame = self.renderer.render(frame_index, frame_index / self.fps, targets)
+                if dynamic_only:
+                    frame = self.renderer.render_dynamic(frame_index, t, targets)
+                else:
+                    frame = self.renderer.render(frame_index, t, targets)
             except Exception:
                 self.stats.render_errors += 1
                 log.exception("render of frame %d failed; frame skipped", frame_index)
@@ -141,12 +196,19 @@ class GameLoop:
             meta.input_seq = self.input_seq
             meta.stamps[Stage.RENDER_START] = render_start
             stamp(meta.stamps, Stage.RENDER_END)
-            if self.on_render_time is not None:
+            report = self.on_dynamic_time if dynamic_only else self.on_render_time
+            if report is not None:
                 render_ns = meta.stamps[Stage.RENDER_END, 0] - render_start[0]
-                self.on_render_time(float(render_ns) / 1e9)
+                report(float(render_ns) / 1e9)
             write_meta(lease.header, meta)
             lease.commit(stamp_stage=Stage.RING_R_READY)
         self.stats.frames += 1
+        if dynamic_only:
+            self.stats.frames_predicted += 1
+        else:
+            self.stats.frames_rendered += 1
+            self._last_full = frame_index, t
+            self._force_full = False
         return True
 
     def run(

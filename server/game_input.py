@@ -43,6 +43,9 @@ class InputMessage(BaseModel):
     render_scale: float | None = Field(default=None, ge=1.0, le=4.0, allow_inf_nan=False)
     # Camera jitter on/off from the next frame on (on only for temporal upscalers).
     jitter: bool | None = None
+    # Frame generation on/off from the next frame on: the game renders every other
+    # frame fully and draws only its moving objects on the others.
+    frame_generation: bool | None = None
 
     def to_event(self) -> CameraInput:
         return CameraInput(self.dyaw_deg, self.dpitch_deg, self.forward, self.right, self.up)
@@ -57,6 +60,7 @@ class InputReceiver:
         sink: Callable[[CameraInput, int], None],
         on_scale: Callable[[float], None] | None = None,
         on_jitter: Callable[[bool], None] | None = None,
+        on_frame_generation: Callable[[bool], None] | None = None,
     ) -> None:
         self.path = path
         self.accepted = 0
@@ -68,6 +72,7 @@ class InputReceiver:
         self._sink = sink
         self._on_scale = on_scale
         self._on_jitter = on_jitter
+        self._on_frame_generation = on_frame_generation
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._loop, name="game-input", daemon=True)
         self._thread.start()
@@ -93,6 +98,8 @@ class InputReceiver:
                 self._on_scale(message.render_scale)
             if message.jitter is not None and self._on_jitter is not None:
                 self._on_jitter(message.jitter)
+            if message.frame_generation is not None and self._on_frame_generation is not None:
+                self._on_frame_generation(message.frame_generation)
             self._sink(message.to_event(), message.seq)
 
     def close(self) -> None:

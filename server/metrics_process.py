@@ -32,11 +32,13 @@ STAGE_BUCKETS = (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.033, 0.05, 0.1, 0.2,
 RING_FRAMES = "upcast_ring_frames"
 GAME_METRICS = (
     "upcast_game_frames_rendered",
+    "upcast_game_frames_predicted",
     "upcast_game_frames_late",
     "upcast_game_ring_timeouts",
     "upcast_game_render_errors",
     "upcast_game_inputs_applied",
     "upcast_game_render_seconds",
+    "upcast_game_dynamic_draw_seconds",
     RING_FRAMES,
 )
 WORKER_METRICS = (
@@ -90,20 +92,34 @@ def ring_metrics(rings: Iterable[FrameRing]) -> Iterator[Metric]:
 
 
 def game_registry(loop: GameLoop) -> CollectorRegistry:
-    """A registry with the game's metrics; also sets the loop's render-time hook."""
+    """A registry with the game's metrics; also sets the loop's render and dynamic-draw hooks."""
     registry = CollectorRegistry()
     ProcessCollector(registry=registry)
     render = Histogram(
         "upcast_game_render_seconds",
-        "Time to render one frame into ring R (render_start -> render_end)",
+        "Time to fully render one frame into ring R (render_start -> render_end)",
         buckets=STAGE_BUCKETS,
         registry=registry,
     )
     loop.on_render_time = render.observe
+    dynamic = Histogram(
+        "upcast_game_dynamic_draw_seconds",
+        "Time to draw only the moving objects of a frame the worker predicts (frame generation)",
+        buckets=STAGE_BUCKETS,
+        registry=registry,
+    )
+    loop.on_dynamic_time = dynamic.observe
 
     def produce() -> Iterator[Metric]:
         s = loop.stats
-        yield _counter("upcast_game_frames_rendered", "Frames rendered into ring R", s.frames)
+        yield _counter(
+            "upcast_game_frames_rendered", "Frames fully rendered into ring R", s.frames_rendered
+        )
+        yield _counter(
+            "upcast_game_frames_predicted",
+            "Frames into ring R with only the moving objects drawn (frame generation)",
+            s.frames_predicted,
+        )
         yield _counter("upcast_game_frames_late", "Frames started a period late", s.late_frames)
         yield _counter(
             "upcast_game_ring_timeouts", "Frames dropped: no ring R slot", s.ring_timeouts

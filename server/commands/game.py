@@ -28,6 +28,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="sub-pixel camera jitter (Halton 2,3) for temporal upscalers (default: on)",
     )
     parser.add_argument(
+        "--frame-generation",
+        action=argparse.BooleanOptionalAction,
+        default=False,
+        help="render every other frame fully and only the moving objects on the others, "
+        "for the worker to predict the rest; --fps stays the rate into ring R (default: off)",
+    )
+    parser.add_argument(
         "--metrics-port", type=_port, default=0, help="Prometheus /metrics TCP port (0: off)"
     )
 
@@ -58,16 +65,29 @@ def run(args: argparse.Namespace) -> int:
     )
     ring = attach_render_ring(args.ring, wait_s=10)
     display = Size.parse(args.size).scaled(args.scale)
-    loop = GameLoop(renderer, ring, args.fps, display_size=display)
+    loop = GameLoop(
+        renderer, ring, args.fps, display_size=display, frame_generation=args.frame_generation
+    )
     serve_metrics(game_registry(loop), args.metrics_port, "game")
     receiver = (
         InputReceiver(
-            args.input, loop.push_input, on_scale=loop.request_scale, on_jitter=loop.request_jitter
+            args.input,
+            loop.push_input,
+            on_scale=loop.request_scale,
+            on_jitter=loop.request_jitter,
+            on_frame_generation=loop.request_frame_generation,
         )
         if args.input
         else None
     )
-    log.info("game: scene %s at %s, %.0f fps into %s", args.scene, args.size, args.fps, args.ring)
+    log.info(
+        "game: scene %s at %s, %.0f fps into %s, frame generation %s",
+        args.scene,
+        args.size,
+        args.fps,
+        args.ring,
+        "on" if args.frame_generation else "off",
+    )
     try:
         stats = loop.run(stop, duration_s=args.duration)
     finally:

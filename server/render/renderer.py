@@ -9,6 +9,7 @@ to the current ones and zero motion.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -16,7 +17,7 @@ import torch
 
 from server.frame import Camera, F32Array, FrameFlags, FrameMeta, RenderFrame, Size, U8Array
 from server.render.camera import CameraInput, CameraPose, GameCamera, InputState
-from server.render.intersect import depth_pass, fmask
+from server.render.intersect import ClassHits, depth_pass, fmask
 from server.render.motion import depth_from_s, object_motion, static_motion
 from server.render.rays import FrameSetup, ObjectInstance, RayGrid, make_grid
 from server.render.scene import Scene
@@ -78,6 +79,30 @@ class _Band:
     s: torch.Tensor | None = None  # (rows, W) inverse view depth, 0 = sky
     motion: tuple[torch.Tensor, torch.Tensor] | None = None  # x, y planes
     mask: torch.Tensor | None = None
+
+
+@dataclass
+class _ShadedObjects:
+    """The pixels bounded objects won in a band, with their s and linear colour."""
+
+    pix: torch.Tensor  # (n,) flat index into the band
+    s: torch.Tensor  # (n,) inverse view depth
+    planes: list[torch.Tensor]  # 3 x (n,) linear colour
+    # (class hits, object column, instance, local hit points) of each moving object
+    moving: list[tuple[ClassHits, int, ObjectInstance, torch.Tensor]]
+
+
+def _camera_of(setup: FrameSetup) -> Camera:
+    f32 = np.float32
+    return Camera(
+        setup.view.astype(f32),
+        setup.proj.astype(f32),
+        setup.prev_view.astype(f32),
+        setup.prev_proj.astype(f32),
+        setup.near,
+        setup.far,
+        setup.fov_y_deg,
+    )
 
 
 def _row_span(rows: torch.Tensor) -> tuple[int, int]:
@@ -174,6 +199,25 @@ class Renderer:
             tuple(instances),
         )
 
+    def _shade_objects(
+        self, classes: list[ClassHits], setup: FrameSetup, grid: RayGrid, sun: np.ndarray
+    ) -> _ShadedObjects | None:
+        """Linear colour of every pixel won by a bounded object; None if there is none."""
+        surfs: list[torch.Tensor] = []
+        pix: list[torch.Tensor] = []
+        moving = []
+        for hits in classes:
+            rows, q = object_surface(hits, self.entries, grid, sun)
+            surfs.append(rows)
+            pix.append(hits.pix)
+            moving += [(hits, k, inst, q) for k, inst in enumerate(hits.insts) if inst.obj.moving]
+        if not surfs:
+            return None
+        surf_all = surfs[0] if len(surfs) == 1 else torch.cat(surfs, dim=1)
+        pix_all = pix[0] if len(pix) == 1 else torch.cat(pix)
+        planes = shade(self.atlas, surf_all, self.scene.lighting, setup.far, surf_all[S])
+        return _ShadedObjects(pix_all, surf_all[S], planes, moving)
+
     def _trace(self, setup: FrameSetup, grid: RayGrid, gbuffers: bool, motion: bool) -> _Band:
         """Colour (and optionally s, motion, mask) of one band of rays."""
         lighting = self.scene.lighting
@@ -206,20 +250,11 @@ class Renderer:
                     dst[c1 - b0 :].copy_(plane[c1 - b0 :])
                 part = dst[c0 - b0 : c1 - b0]
                 part.lerp_(plane[c0 - b0 : c1 - b0], mask)
-        surfs: list[torch.Tensor] = []
-        pix: list[torch.Tensor] = []
-        moving = []
-        for hits in dp.classes:
-            rows, q = object_surface(hits, self.entries, grid, sun)
-            surfs.append(rows)
-            pix.append(hits.pix)
-            moving += [(hits, k, inst, q) for k, inst in enumerate(hits.insts) if inst.obj.moving]
-        if surfs:
-            surf_all = surfs[0] if len(surfs) == 1 else torch.cat(surfs, dim=1)
-            pix_all = pix[0] if len(pix) == 1 else torch.cat(pix)
-            planes = shade(self.atlas, surf_all, lighting, setup.far, surf_all[S])
-            for ch, plane in enumerate(planes):
-                color[ch].view(-1).index_copy_(0, pix_all, plane)
+        shaded = self._shade_objects(dp.classes, setup, grid, sun)
+        if shaded is not None:
+            for ch, plane in enumerate(shaded.planes):
+                color[ch].view(-1).index_copy_(0, shaded.pix, plane)
+        moving = [] if shaded is None else shaded.moving
         band = _Band(color)
         if not gbuffers:
             return band
@@ -300,17 +335,63 @@ class Renderer:
         torch.from_numpy(targets.dynamic_mask).copy_(band.mask)
         self._last_t = t
         self._last_input = self.game_camera.state
-        f32 = np.float32
-        camera = Camera(
-            setup.view.astype(f32),
-            setup.proj.astype(f32),
-            setup.prev_view.astype(f32),
-            setup.prev_proj.astype(f32),
-            setup.near,
-            setup.far,
-            self.scene.fov_y_deg,
+        meta = FrameMeta(
+            frame_index, _camera_of(setup), jit, FrameFlags.RESET if reset else FrameFlags.NONE
         )
-        meta = FrameMeta(frame_index, camera, jit, FrameFlags.RESET if reset else FrameFlags.NONE)
+        return RenderFrame(targets.color, targets.depth, targets.motion, targets.dynamic_mask, meta)
+
+    def render_dynamic(
+        self, frame_index: int, t: float, targets: RenderTargets | None = None
+    ) -> RenderFrame:
+        """Only the scene's moving objects at ``t``, for frame generation (flag PREDICTED).
+
+        The worker predicts the static world from the last full render and
+        composites this layer over it by depth test, so here the moving objects
+        are drawn against nothing: static geometry does not occlude them (the
+        worker's depth test does that), and no ground or sky is traced. Where a
+        moving object is seen: its shaded sRGB colour, NDC depth and mask 1;
+        elsewhere colour 0, depth 1.0, mask 0; motion is 0 everywhere. The
+        shading is the full render's for the same surface (the renderer casts no
+        shadows, so static objects do not change how a moving one is lit).
+
+        Unjittered, with the camera of ``t`` and, as prev, the camera of the
+        last full ``render`` (the frame the worker predicts from; RESET too if
+        there was none). The previous-frame state is left alone: the next full
+        render's motion still spans from the last full render.
+        """
+        size = self.render_size
+        if targets is None:
+            targets = RenderTargets.allocate(size)
+        targets.check(size)
+        last_t = self._last_t
+        no_full_render = last_t is None
+        full = self._setup(
+            t, t if last_t is None else last_t, size, no_full_render, self._last_input
+        )
+        moving = tuple(inst for inst in full.instances if inst.obj.moving)
+        setup = dataclasses.replace(full, instances=moving)
+        grid = make_grid(setup, size.width, size.height, (0.0, 0.0), 0, size.height, self.device)
+        targets.color.fill(0)
+        targets.depth.fill(1.0)
+        targets.motion.fill(0.0)
+        targets.dynamic_mask.fill(0)
+        shaded = (
+            self._shade_objects(
+                depth_pass(setup, grid).classes, setup, grid, sun_direction(self.scene.lighting)
+            )
+            if moving
+            else None
+        )
+        if shaded is not None:
+            n = shaded.pix.numel()
+            rgb = torch.empty(1, n, 3, dtype=torch.uint8, device=self.device)
+            encode_srgb_into(torch.stack(shaded.planes).view(3, 1, n), rgb)
+            torch.from_numpy(targets.color).view(-1, 3).index_copy_(0, shaded.pix, rgb.view(n, 3))
+            depth = depth_from_s(shaded.s, setup).nan_to_num_(nan=1.0)
+            torch.from_numpy(targets.depth).view(-1).index_copy_(0, shaded.pix, depth)
+            torch.from_numpy(targets.dynamic_mask).view(-1).index_fill_(0, shaded.pix, 1)
+        flags = FrameFlags.PREDICTED | (FrameFlags.RESET if no_full_render else FrameFlags.NONE)
+        meta = FrameMeta(frame_index, _camera_of(setup), (0.0, 0.0), flags)
         return RenderFrame(targets.color, targets.depth, targets.motion, targets.dynamic_mask, meta)
 
     def render_ground_truth(self, t: float, display_size: Size, supersample: int = 3) -> U8Array:
