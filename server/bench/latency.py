@@ -143,6 +143,7 @@ class LiveStack:
             fps=self.config.fps,
             bitrate=self._bitrate,
             cert_hash_hex=self.endpoint.cert_sha256,
+            frame_generation=self.config.frame_generation,
         )
         self.session = StreamingSession(
             settings,

@@ -110,9 +110,15 @@ class Live:
 
 
 @contextlib.contextmanager
-def start_live(scene: str, *, fps: float = FPS) -> Iterator[Live]:
+def start_live(scene: str, *, fps: float = FPS, frame_generation: bool = False) -> Iterator[Live]:
     tap = FrameTap()
-    config = SessionConfig(scene=scene, render_size=RENDER, display_size=DISPLAY, fps=fps)
+    config = SessionConfig(
+        scene=scene,
+        render_size=RENDER,
+        display_size=DISPLAY,
+        fps=fps,
+        frame_generation=frame_generation,
+    )
     with LiveStack(config, frame_tap=tap) as stack:
         yield Live(stack, tap)
         stack.check()
