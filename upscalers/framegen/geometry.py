@@ -72,6 +72,21 @@ class Reprojection:
         return torch.as_tensor(m, dtype=torch.float32, device=device)
 
 
+def pixel_space_matrices(reproj: Reprojection, w: int, h: int) -> tuple[F64Array, F64Array]:
+    """The reprojection on pixel coordinates, for the pixel stage.
+
+    ``F`` takes a cached pixel (u, v, depth, 1) to new clip space; ``G`` takes a
+    new pixel (x, y, depth, 1) to cached homogeneous pixels.
+    """
+    to_ndc = np.array(
+        [[2.0 / w, 0, 0, -1.0], [0, -2.0 / h, 0, 1.0], [0, 0, 1.0, 0], [0, 0, 0, 1.0]]
+    )
+    to_pix = np.array(
+        [[w / 2.0, 0, 0, w / 2.0], [0, -h / 2.0, 0, h / 2.0], [0, 0, 1.0, 0], [0, 0, 0, 1.0]]
+    )
+    return reproj.forward @ to_ndc, to_pix @ reproj.inverse @ to_ndc
+
+
 def _z_at_infinity(p_inv: F64Array) -> float | None:
     """NDC z where P^-1 (0, 0, z, 1) has w = 0 (independent of x, y for perspective)."""
     a, b = p_inv[3, 2], p_inv[3, 3]
