@@ -171,7 +171,7 @@ def _project(depth_eff, m, x, y, w, h):
     return qx, qy, cz * inv_w, True
 
 
-@njit(**_JIT)
+@njit(parallel=True, **_JIT)
 def mesh_vertices(depth_raw, depth_eff, dynamic, fwd, tile, tensile, tensile_threshold, out):
     """The SSAM vertices (``mesh.build_mesh`` up to the triangles) on a (Th + 2, Tw + 2) grid.
 
@@ -181,7 +181,7 @@ def mesh_vertices(depth_raw, depth_eff, dynamic, fwd, tile, tensile, tensile_thr
     h, w = depth_raw.shape
     th, tw = -(-h // tile), -(-w // tile)
     bias = F32(1e-9)
-    for ty in range(th):
+    for ty in prange(th):
         for tx in range(tw):
             # The tile's pixel of largest squared depth gradient (first one on ties).
             best = F32(-3.0)
@@ -260,90 +260,119 @@ def _corner(t, n_half, nx):
     return i, j, i + 1, j + 1, i + 1, j
 
 
+@njit(inline="always", **_JIT)
+def _floor(x):
+    """floor of a float32 in int range (math.floor compiles to a slower library call)."""
+    i = np.int64(x)
+    return i - 1 if F32(i) > x else i
+
+
+@njit(inline="always", **_JIT)
+def _ceil(x):
+    i = np.int64(x)
+    return i + 1 if F32(i) < x else i
+
+
+RASTER_BANDS = 8  # row bands rasterized in parallel (each walks every triangle)
+
+
 @njit(**_JIT)
+def _setup_triangle(verts, t, n_half, nx, w, h, max_bbox_pixels, planes, bary):
+    """Planes of triangle ``t`` (``raster._planes``) and its rows (iy0, iy1); (0, -1) if unused."""
+    one, half = F32(1.0), F32(0.5)
+    r0, c0, r1, c1, r2, c2 = _corner(t, n_half, nx)
+    if verts[5, r0, c0] < 0.5 or verts[5, r1, c1] < 0.5 or verts[5, r2, c2] < 0.5:
+        return 0, -1
+    x0, x1, x2 = F32(verts[0, r0, c0]), F32(verts[0, r1, c1]), F32(verts[0, r2, c2])
+    y0, y1, y2 = F32(verts[1, r0, c0]), F32(verts[1, r1, c1]), F32(verts[1, r2, c2])
+    den = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)
+    if not abs(den) > 1e-6:
+        return 0, -1
+    inv = one / den
+    a1, b1 = (y2 - y0) * inv, (x0 - x2) * inv
+    a2, b2 = (y0 - y1) * inv, (x1 - x0) * inv
+    cc1 = -(a1 * x0 + b1 * y0)
+    cc2 = -(a2 * x0 + b2 * y0)
+    bary[t, 0, 0], bary[t, 0, 1], bary[t, 0, 2] = -a1 - a2, -b1 - b2, one - cc1 - cc2
+    bary[t, 1, 0], bary[t, 1, 1], bary[t, 1, 2] = a1, b1, cc1
+    bary[t, 2, 0], bary[t, 2, 1], bary[t, 2, 2] = a2, b2, cc2
+    for k in range(3):  # depth (clamped at 0 as build_mesh does), u, v
+        v0, v1, v2 = F32(verts[2 + k, r0, c0]), F32(verts[2 + k, r1, c1]), F32(verts[2 + k, r2, c2])
+        if k == 0:
+            v0, v1, v2 = max(v0, F32(0.0)), max(v1, F32(0.0)), max(v2, F32(0.0))
+        d1, d2 = v1 - v0, v2 - v0
+        planes[t, k, 0] = a1 * d1 + a2 * d2
+        planes[t, k, 1] = b1 * d1 + b2 * d2
+        planes[t, k, 2] = v0 + cc1 * d1 + cc2 * d2
+    bx1 = min(max(math.floor(max(x0, x1, x2) - half), -1), w - 1)
+    bx0 = min(max(math.ceil(min(x0, x1, x2) - half), 0), w - 1)
+    iy0 = min(max(math.ceil(min(y0, y1, y2) - half), 0), h - 1)
+    iy1 = min(max(math.floor(max(y0, y1, y2) - half), -1), h - 1)
+    bw, bh = max(bx1 - bx0 + 1, 0), max(iy1 - iy0 + 1, 0)
+    if bw * bh > max_bbox_pixels:
+        return 0, -1
+    return iy0, iy1
+
+
+@njit(parallel=True, **_JIT)
 def rasterize(verts, w, h, max_bbox_pixels, tri_of, zbuf, planes):
     """Scanline raster of the vertex grid with a depth test (``raster.rasterize``).
 
     Writes per pixel the winning triangle (``tri_of``, -1 where none) and its
     depth (``zbuf``), and per triangle the screen planes (a, b, c) of depth,
-    u and v (``planes``, (T, 3, 3)) that the pixel stage evaluates.
+    u and v (``planes``, (T, 3, 3)) that the pixel stage evaluates. Triangles
+    are set up in parallel, then row bands are rasterized in parallel, each
+    band walking the triangles in id order, so ties keep the lowest id.
     """
-    one, half = F32(1.0), F32(0.5)
+    half = F32(0.5)
     eps = F32(EDGE_EPS)
     ny, nx = verts.shape[1] - 1, verts.shape[2] - 1
     n_half = ny * nx
-    for p in range(w * h):
-        tri_of[p] = -1
-        zbuf[p] = np.inf
-    xs = np.empty(3, np.float32)
-    ys = np.empty(3, np.float32)
-    vals = np.empty((3, 3), np.float32)
-    bary = np.empty((3, 3), np.float32)
-    for t in range(2 * n_half):
-        r0, c0, r1, c1, r2, c2 = _corner(t, n_half, nx)
-        if verts[5, r0, c0] < 0.5 or verts[5, r1, c1] < 0.5 or verts[5, r2, c2] < 0.5:
-            continue
-        rs, cs = (r0, r1, r2), (c0, c1, c2)
-        for k in range(3):
-            r, c = rs[k], cs[k]
-            xs[k] = F32(verts[0, r, c])
-            ys[k] = F32(verts[1, r, c])
-            vals[k, 0] = max(F32(verts[2, r, c]), F32(0.0))
-            vals[k, 1] = F32(verts[3, r, c])
-            vals[k, 2] = F32(verts[4, r, c])
-        x0, x1, x2 = xs[0], xs[1], xs[2]
-        y0, y1, y2 = ys[0], ys[1], ys[2]
-        den = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)
-        if not abs(den) > 1e-6:
-            continue
-        inv = one / den
-        a1, b1 = (y2 - y0) * inv, (x0 - x2) * inv
-        a2, b2 = (y0 - y1) * inv, (x1 - x0) * inv
-        cc1 = -(a1 * x0 + b1 * y0)
-        cc2 = -(a2 * x0 + b2 * y0)
-        bary[0, 0], bary[0, 1], bary[0, 2] = -a1 - a2, -b1 - b2, one - cc1 - cc2
-        bary[1, 0], bary[1, 1], bary[1, 2] = a1, b1, cc1
-        bary[2, 0], bary[2, 1], bary[2, 2] = a2, b2, cc2
-        for k in range(3):
-            d1 = vals[1, k] - vals[0, k]
-            d2 = vals[2, k] - vals[0, k]
-            planes[t, k, 0] = a1 * d1 + a2 * d2
-            planes[t, k, 1] = b1 * d1 + b2 * d2
-            planes[t, k, 2] = vals[0, k] + cc1 * d1 + cc2 * d2
-        bx1 = min(max(math.floor(max(x0, x1, x2) - half), -1), w - 1)
-        bx0 = min(max(math.ceil(min(x0, x1, x2) - half), 0), w - 1)
-        iy0 = min(max(math.ceil(min(y0, y1, y2) - half), 0), h - 1)
-        iy1 = min(max(math.floor(max(y0, y1, y2) - half), -1), h - 1)
-        bw, bh = max(bx1 - bx0 + 1, 0), max(iy1 - iy0 + 1, 0)
-        if bw * bh > max_bbox_pixels:
-            continue
-        za, zb, zc = planes[t, 0, 0], planes[t, 0, 1], planes[t, 0, 2]
-        for row in range(iy0, iy1 + 1):
-            cy = F32(row) + half
-            # The span of pixel centres inside all three edges (b_k(x) + eps >= 0).
-            lo, hi = F32(-np.inf), F32(np.inf)
-            empty = False
-            for k in range(3):
-                a = bary[k, 0]
-                c = bary[k, 1] * cy + bary[k, 2] + eps
-                if a > 1e-12:
-                    lo = max(lo, -c / a)
-                elif a < -1e-12:
-                    hi = min(hi, -c / a)
-                elif c < 0.0:
-                    empty = True
-            if empty or lo > hi:
+    n_tri = 2 * n_half
+    bary = np.empty((n_tri, 3, 3), np.float32)
+    rows = np.empty((n_tri, 2), np.int64)
+    for t in prange(n_tri):
+        rows[t, 0], rows[t, 1] = _setup_triangle(
+            verts, t, n_half, nx, w, h, max_bbox_pixels, planes, bary
+        )
+    band_h = (h + RASTER_BANDS - 1) // RASTER_BANDS
+    for band in prange(RASTER_BANDS):
+        top, bottom = band * band_h, min(h, (band + 1) * band_h)
+        for p in range(top * w, bottom * w):
+            tri_of[p] = -1
+            zbuf[p] = np.inf
+        for t in range(n_tri):
+            first, last = max(rows[t, 0], top), min(rows[t, 1], bottom - 1)
+            if first > last:
                 continue
-            i0 = max(math.ceil(min(max(lo, F32(-1.0)), F32(w)) - half), 0)
-            i1 = min(math.floor(min(max(hi, F32(-1.0)), F32(w + 1)) - half), w - 1)
-            z0 = za * (F32(i0) + half) + zb * cy + zc
-            base = row * w
-            for i in range(i0, i1 + 1):
-                z = max(z0 + za * F32(i - i0), F32(0.0))
-                # Triangles come in id order: a strict test keeps the lowest id on ties.
-                if z < zbuf[base + i]:
-                    zbuf[base + i] = z
-                    tri_of[base + i] = t
+            za, zb, zc = planes[t, 0, 0], planes[t, 0, 1], planes[t, 0, 2]
+            for row in range(first, last + 1):
+                cy = F32(row) + half
+                # The span of pixel centres inside all three edges (b_k(x) + eps >= 0).
+                # Branch-free: an edge bounds from the left (a > 0), the right (a < 0), or
+                # is parallel to the row and keeps it whole or empties it.
+                lo, hi = F32(-np.inf), F32(np.inf)
+                empty = False
+                for k in range(3):
+                    a = bary[t, k, 0]
+                    c = bary[t, k, 1] * cy + bary[t, k, 2] + eps
+                    flat = abs(a) <= 1e-12
+                    root = -c / (F32(1.0) if flat else a)
+                    lo = max(lo, root if a > 1e-12 else F32(-np.inf))
+                    hi = min(hi, root if a < -1e-12 else F32(np.inf))
+                    empty |= flat & (c < 0.0)
+                if empty | (lo > hi):
+                    continue
+                i0 = max(_ceil(min(max(lo, F32(-1.0)), F32(w)) - half), 0)
+                i1 = min(_floor(min(max(hi, F32(-1.0)), F32(w + 1)) - half), w - 1)
+                z0 = za * (F32(i0) + half) + zb * cy + zc
+                base = row * w
+                for i in range(i0, i1 + 1):
+                    z = max(z0 + za * F32(i - i0), F32(0.0))
+                    # Triangles come in id order: a strict test keeps the lowest id on ties.
+                    if z < zbuf[base + i]:
+                        zbuf[base + i] = z
+                        tri_of[base + i] = t
 
 
 ROW_BLOCK = 8  # rows per parallel work item of the pixel stage

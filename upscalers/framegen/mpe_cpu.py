@@ -166,8 +166,9 @@ class HostMeshProjection:
         kernels.fill_packed(packed, no_colour, w, h, s.fill)
         color = np.empty((h, w, 3), np.uint8)
         kernels.unpack_rgb(packed, color)
-        holes, no_colour = holes.reshape(h, w), no_colour.reshape(h, w)
-        return Prediction(color, holes, depth, frame.frame_id, no_colour)
+        return Prediction(
+            color, holes.reshape(h, w), depth, frame.frame_id, no_colour.reshape(h, w)
+        )
 
 
 _WARM = False
