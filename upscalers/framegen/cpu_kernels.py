@@ -182,24 +182,28 @@ def mesh_vertices(depth_raw, depth_eff, dynamic, fwd, tile, tensile, tensile_thr
     th, tw = -(-h // tile), -(-w // tile)
     bias = F32(1e-9)
     for ty in prange(th):
-        for tx in range(tw):
-            # The tile's pixel of largest squared depth gradient (first one on ties).
-            best = F32(-3.0)
-            vx, vy = tx * tile, ty * tile
-            for yy in range(ty * tile, min(h, (ty + 1) * tile)):
+        # Each tile's pixel of largest squared depth gradient (the first one on ties):
+        # gradients a pixel row at a time (vectorizes), then a running maximum per tile.
+        grad = np.empty(w, np.float32)
+        best = np.full(tw, F32(-3.0))
+        best_x = np.empty(tw, np.int64)
+        best_y = np.empty(tw, np.int64)
+        for yy in range(ty * tile, min(h, (ty + 1) * tile)):
+            below = min(yy + 1, h - 1)  # the last row has no dy term: d - d = 0
+            for xx in range(w):
+                d = depth_raw[yy, xx]
+                dx = depth_raw[yy, min(xx + 1, w - 1)] - d
+                dy = depth_raw[below, xx] - d
+                g = dx * dx + dy * dy
+                grad[xx] = F32(-1.0) if dynamic[yy, xx] else g
+            for tx in range(tw):
+                if yy == ty * tile:
+                    best_x[tx], best_y[tx] = tx * tile, yy
                 for xx in range(tx * tile, min(w, (tx + 1) * tile)):
-                    d = depth_raw[yy, xx]
-                    g = F32(0.0)
-                    if xx + 1 < w:
-                        dx = depth_raw[yy, xx + 1] - d
-                        g += dx * dx
-                    if yy + 1 < h:
-                        dy = depth_raw[yy + 1, xx] - d
-                        g += dy * dy
-                    if dynamic[yy, xx]:
-                        g = F32(-1.0)
-                    if g > best:
-                        best, vx, vy = g, xx, yy
+                    if grad[xx] > best[tx]:
+                        best[tx], best_x[tx], best_y[tx] = grad[xx], xx, yy
+        for tx in range(tw):
+            vx, vy = best_x[tx], best_y[tx]
             if tensile:
                 # Nearest and farthest of the 3 x 3 neighbours (ties to the first, the
                 # centre biased by a hair as in mesh._neighbour_extremes).
@@ -341,16 +345,20 @@ def rasterize(verts, w, h, max_bbox_pixels, tri_of, zbuf, planes):
         for p in range(top * w, bottom * w):
             tri_of[p] = -1
             zbuf[p] = np.inf
+        # Spans of all rows of a triangle first (independent rows: vectorizes), then fills.
+        span_lo = np.empty(band_h, np.int64)
+        span_hi = np.empty(band_h, np.int64)
+        span_z = np.empty(band_h, np.float32)
         for t in range(n_tri):
             first, last = max(rows[t, 0], top), min(rows[t, 1], bottom - 1)
             if first > last:
                 continue
             za, zb, zc = planes[t, 0, 0], planes[t, 0, 1], planes[t, 0, 2]
-            for row in range(first, last + 1):
-                cy = F32(row) + half
-                # The span of pixel centres inside all three edges (b_k(x) + eps >= 0).
-                # Branch-free: an edge bounds from the left (a > 0), the right (a < 0), or
-                # is parallel to the row and keeps it whole or empties it.
+            for j in range(last - first + 1):
+                cy = F32(first + j) + half
+                # The pixel centres inside all three edges (b_k(x) + eps >= 0): an edge bounds
+                # from the left (a > 0), the right (a < 0), or is parallel to the row and
+                # keeps it whole or empties it.
                 lo, hi = F32(-np.inf), F32(np.inf)
                 empty = False
                 for k in range(3):
@@ -361,13 +369,15 @@ def rasterize(verts, w, h, max_bbox_pixels, tri_of, zbuf, planes):
                     lo = max(lo, root if a > 1e-12 else F32(-np.inf))
                     hi = min(hi, root if a < -1e-12 else F32(np.inf))
                     empty |= flat & (c < 0.0)
-                if empty | (lo > hi):
-                    continue
                 i0 = max(_ceil(min(max(lo, F32(-1.0)), F32(w)) - half), 0)
                 i1 = min(_floor(min(max(hi, F32(-1.0)), F32(w + 1)) - half), w - 1)
-                z0 = za * (F32(i0) + half) + zb * cy + zc
-                base = row * w
-                for i in range(i0, i1 + 1):
+                span_lo[j] = i0
+                span_hi[j] = i0 - 1 if empty | (lo > hi) else i1
+                span_z[j] = za * (F32(i0) + half) + zb * cy + zc
+            for j in range(last - first + 1):
+                base = (first + j) * w
+                i0, z0 = span_lo[j], span_z[j]
+                for i in range(i0, span_hi[j] + 1):
                     z = max(z0 + za * F32(i - i0), F32(0.0))
                     # Triangles come in id order: a strict test keeps the lowest id on ties.
                     if z < zbuf[base + i]:
