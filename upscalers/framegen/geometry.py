@@ -25,11 +25,13 @@ F64Array = npt.NDArray[np.float64]
 MIN_CLIP_W = 1e-6
 
 
-def _finite_inverse(m: F64Array) -> F64Array | None:
-    if not np.all(np.isfinite(m)):
+def _finite_inverses(ms: F64Array) -> F64Array | None:
+    """Inverses of a stack of matrices (one batched call), or None if any is non-finite or
+    singular."""
+    if not np.all(np.isfinite(ms)):
         return None
     try:
-        inv = np.linalg.inv(m)
+        inv = np.linalg.inv(ms)
     except np.linalg.LinAlgError:
         return None
     return np.asarray(inv, dtype=np.float64) if np.all(np.isfinite(inv)) else None
@@ -57,9 +59,10 @@ class Reprojection:
         )
         if any(m.shape != (4, 4) for m in (v0, p0, v1, p1)):
             return None
-        v0_inv, p0_inv, v1_inv, p1_inv = (_finite_inverse(m) for m in (v0, p0, v1, p1))
-        if v0_inv is None or p0_inv is None or v1_inv is None or p1_inv is None:
+        inverses = _finite_inverses(np.stack((v0, p0, v1, p1)))
+        if inverses is None:
             return None
+        v0_inv, p0_inv, v1_inv, p1_inv = inverses
         forward = p1 @ v1 @ v0_inv @ p0_inv
         inverse = p0 @ v0 @ v1_inv @ p1_inv
         z0, z1 = _z_at_infinity(p0_inv), _z_at_infinity(p1_inv)
