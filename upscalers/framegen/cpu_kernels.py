@@ -12,8 +12,10 @@ lowest triangle id at equal depth.
 
 Outputs are written into caller-owned arrays; nothing here allocates per
 pixel. ``parallel`` kernels split rows over numba's threads (``prange``) in
-small chunks taken dynamically (``set_parallel_chunksize``): with the cores
-shared, a thread the OS parks delays only its chunk, not half the frame.
+blocks of rows or triangles; ``mpe_cpu`` has the threads take them one at a
+time (``set_parallel_chunksize``; it cannot be called in here without
+disabling the on-disk cache), so on shared cores a thread the OS parks delays
+only its block, not half the frame.
 """
 
 # numba has no type stubs and its decorators are untyped: mypy skips this module;
@@ -25,12 +27,13 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange, set_parallel_chunksize
+from numba import njit, prange
 
 F32 = np.float32
 _JIT = {"cache": True, "nogil": True, "fastmath": False, "error_model": "numpy"}
 
 MIN_CLIP_W = 1e-6  # geometry.MIN_CLIP_W
+ROW_BLOCK = 8  # rows per parallel work item of the per-pixel kernels
 EDGE_EPS = 1e-5  # raster.rasterize's eps: pixel centres this far outside an edge still count
 
 
@@ -41,21 +44,20 @@ def sanitize_frame(color_src, depth_src, dyn_src, packed, depth, dynamic):
     """
     h, w = depth.shape
     n_dyn = 0
-    prev_chunk = set_parallel_chunksize(16)
-    for y in prange(h):
-        for x in range(w):
-            packed[y * w + x] = (
-                np.uint32(color_src[y, x, 0])
-                | (np.uint32(color_src[y, x, 1]) << np.uint32(8))
-                | (np.uint32(color_src[y, x, 2]) << np.uint32(16))
-            )
-            d = depth_src[y, x]
-            d = F32(1.0) if (d != d) | (d > F32(1.0)) else max(d, F32(0.0))
-            depth[y, x] = d
-            m = dyn_src[y, x] != 0
-            dynamic[y, x] = m
-            n_dyn += np.int64(m)
-    set_parallel_chunksize(prev_chunk)
+    for blk in prange((h + ROW_BLOCK - 1) // ROW_BLOCK):
+        for y in range(blk * ROW_BLOCK, min(h, (blk + 1) * ROW_BLOCK)):
+            for x in range(w):
+                packed[y * w + x] = (
+                    np.uint32(color_src[y, x, 0])
+                    | (np.uint32(color_src[y, x, 1]) << np.uint32(8))
+                    | (np.uint32(color_src[y, x, 2]) << np.uint32(16))
+                )
+                d = depth_src[y, x]
+                d = F32(1.0) if (d != d) | (d > F32(1.0)) else max(d, F32(0.0))
+                depth[y, x] = d
+                m = dyn_src[y, x] != 0
+                dynamic[y, x] = m
+                n_dyn += np.int64(m)
     return n_dyn
 
 
@@ -185,7 +187,6 @@ def mesh_vertices(depth_raw, depth_eff, dynamic, fwd, tile, tensile, tensile_thr
     h, w = depth_raw.shape
     th, tw = -(-h // tile), -(-w // tile)
     bias = F32(1e-9)
-    prev_chunk = set_parallel_chunksize(1)
     for ty in prange(th):
         # Each tile's pixel of largest squared depth gradient (the first one on ties):
         # gradients a pixel row at a time (vectorizes), then a running maximum per tile.
@@ -243,7 +244,6 @@ def mesh_vertices(depth_raw, depth_eff, dynamic, fwd, tile, tensile, tensile_thr
             out[3, gy, gx] = ux + 0.5
             out[4, gy, gx] = uy + 0.5
             out[5, gy, gx] = 1.0 if pv else 0.0
-    set_parallel_chunksize(prev_chunk)
     # Replicate the outer ring from its neighbours, then pin it to the border.
     for k in range(6):
         for gy in range(1, th + 1):
@@ -284,6 +284,7 @@ def _ceil(x):
 
 
 RASTER_BANDS = 8  # row bands rasterized in parallel (each walks every triangle)
+SETUP_BLOCK = 256  # triangles per parallel work item of the set-up
 
 
 @njit(**_JIT)
@@ -341,13 +342,12 @@ def rasterize(verts, w, h, max_bbox_pixels, tri_of, zbuf, planes):
     n_tri = 2 * n_half
     bary = np.empty((n_tri, 3, 3), np.float32)
     rows = np.empty((n_tri, 2), np.int64)
-    prev_chunk = set_parallel_chunksize(256)
-    for t in prange(n_tri):
-        rows[t, 0], rows[t, 1] = _setup_triangle(
-            verts, t, n_half, nx, w, h, max_bbox_pixels, planes, bary
-        )
+    for blk in prange((n_tri + SETUP_BLOCK - 1) // SETUP_BLOCK):
+        for t in range(blk * SETUP_BLOCK, min(n_tri, (blk + 1) * SETUP_BLOCK)):
+            rows[t, 0], rows[t, 1] = _setup_triangle(
+                verts, t, n_half, nx, w, h, max_bbox_pixels, planes, bary
+            )
     band_h = (h + RASTER_BANDS - 1) // RASTER_BANDS
-    set_parallel_chunksize(1)
     for band in prange(RASTER_BANDS):
         top, bottom = band * band_h, min(h, (band + 1) * band_h)
         for p in range(top * w, bottom * w):
@@ -391,10 +391,6 @@ def rasterize(verts, w, h, max_bbox_pixels, tri_of, zbuf, planes):
                     if z < zbuf[base + i]:
                         zbuf[base + i] = z
                         tri_of[base + i] = t
-    set_parallel_chunksize(prev_chunk)
-
-
-ROW_BLOCK = 8  # rows per parallel work item of the pixel stage
 
 
 @njit(inline="always", **_JIT)
@@ -516,7 +512,6 @@ def pixel_stage(
     tolerance = F32(tolerance)
     shift2 = F32(min_shift) * F32(min_shift)
     n_blocks = (h + ROW_BLOCK - 1) // ROW_BLOCK
-    prev_chunk = set_parallel_chunksize(1)
     for blk in prange(n_blocks):
         f4 = np.empty((9, w), np.float32)
         u, v, d0, d1, z, qx, qy, fx, fy = (
@@ -595,21 +590,19 @@ def pixel_stage(
                 u4[3],
                 out_packed[row : row + w],
             )
-    set_parallel_chunksize(prev_chunk)
 
 
 @njit(parallel=True, **_JIT)
 def unpack_rgb(packed, out):
     """0x00BBGGRR (H * W,) -> (H, W, 3) uint8."""
     h, w, _ = out.shape
-    prev_chunk = set_parallel_chunksize(16)
-    for y in prange(h):
-        for x in range(w):
-            p = packed[y * w + x]
-            out[y, x, 0] = np.uint8(p & np.uint32(255))
-            out[y, x, 1] = np.uint8((p >> np.uint32(8)) & np.uint32(255))
-            out[y, x, 2] = np.uint8((p >> np.uint32(16)) & np.uint32(255))
-    set_parallel_chunksize(prev_chunk)
+    for blk in prange((h + ROW_BLOCK - 1) // ROW_BLOCK):
+        for y in range(blk * ROW_BLOCK, min(h, (blk + 1) * ROW_BLOCK)):
+            for x in range(w):
+                p = packed[y * w + x]
+                out[y, x, 0] = np.uint8(p & np.uint32(255))
+                out[y, x, 1] = np.uint8((p >> np.uint32(8)) & np.uint32(255))
+                out[y, x, 2] = np.uint8((p >> np.uint32(16)) & np.uint32(255))
 
 
 @njit(**_JIT)

@@ -12,11 +12,14 @@ the frame size. Returned arrays are fresh, never scratch.
 from __future__ import annotations
 
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
+from numba import set_parallel_chunksize
 
 from server.frame import RenderFrame, Size
 from upscalers.framegen import cpu_kernels as kernels
@@ -27,6 +30,17 @@ if TYPE_CHECKING:
     from upscalers.framegen.mpe import MpeOptions
 
 F32Array = npt.NDArray[np.float32]
+
+
+@contextmanager
+def _one_block_at_a_time() -> Iterator[None]:
+    """Parallel kernels hand out their row/triangle blocks one at a time, not half the
+    range per thread: on shared cores a parked thread then delays one block, not the frame."""
+    previous: int = set_parallel_chunksize(1)
+    try:
+        yield
+    finally:
+        set_parallel_chunksize(previous)
 
 
 @dataclass
@@ -73,6 +87,15 @@ class HostMeshProjection:
         self.frame = None
 
     def observe(self, frame: RenderFrame) -> None:
+        with _one_block_at_a_time():
+            self._observe(frame)
+
+    def predict(self, reproj: Reprojection) -> Prediction | None:
+        """The predicted frame from the cached one (None when nothing is cached)."""
+        with _one_block_at_a_time():
+            return self._predict(reproj)
+
+    def _observe(self, frame: RenderFrame) -> None:
         depth_src = np.asarray(frame.depth, dtype=np.float32)
         h, w = depth_src.shape
         color_src = np.asarray(frame.color, dtype=np.uint8)
@@ -113,8 +136,7 @@ class HostMeshProjection:
             Size(w, h),
         )
 
-    def predict(self, reproj: Reprojection) -> Prediction | None:
-        """The predicted frame from the cached one (None when nothing is cached)."""
+    def _predict(self, reproj: Reprojection) -> Prediction | None:
         frame = self.frame
         if frame is None:
             return None
