@@ -22,6 +22,11 @@ under a dynamic object (filled by pull-push, the game draws its moving
 objects there), the true source is off the cached screen (pinned-edge
 stretch), or the depth check disagrees (disocclusion: the surface was hidden
 in the cached frame; the tensile correction gives it background colour).
+
+Backends (``MpeOptions.backend``): this file is the torch implementation, the
+reference and the CUDA path; on the CPU the same steps run as compiled numba
+loops (``mpe_cpu.py``, ``cpu_kernels.py``), with the same options and outputs,
+because eager torch pays for every 230k-pixel intermediate tensor.
 """
 
 from __future__ import annotations
