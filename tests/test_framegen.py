@@ -23,7 +23,16 @@ from upscalers.framegen import (
 from upscalers.framegen.mesh import vertex_pixels
 
 SMALL = Size(160, 90)
-ALL = ("repeat", "splat", "backward_warp", "mpe")
+REGISTERED = ("repeat", "splat", "backward_warp", "mpe")
+# "mpe" is the default backend (numba on the CPU); "mpe_torch" the torch reference path.
+ALL = (*REGISTERED, "mpe_torch")
+BACKENDS = ("numba", "torch")
+
+
+def _create(name: str) -> FramePredictor:
+    if name == "mpe_torch":
+        return MeshProjectionPredictor(MpeOptions(backend="torch"), "cpu")
+    return create(name, "cpu")
 
 
 def _copy(f: RenderFrame) -> RenderFrame:
@@ -68,8 +77,8 @@ def _pair(scene: str, size: Size, t: float, dt: float = 1 / 60) -> tuple[RenderF
 
 
 def test_registry_names_and_unknown() -> None:
-    assert set(ALL) <= set(PREDICTORS)
-    for name in ALL:
+    assert set(REGISTERED) <= set(PREDICTORS)
+    for name in REGISTERED:
         assert create(name, "cpu").name == name
     with pytest.raises(ValueError, match="allowed"):
         create("nope")
@@ -78,7 +87,7 @@ def test_registry_names_and_unknown() -> None:
 @pytest.mark.parametrize("name", ALL)
 def test_nothing_to_predict_before_observe_and_after_reset(name: str) -> None:
     first, second = _pair("slow_pan", SMALL, 0.3)
-    p = create(name, "cpu")
+    p = _create(name)
     cam = second.meta.camera
     assert p.predict(cam.view, cam.proj) is None  # first frame: nothing cached
     p.observe(first)
@@ -94,7 +103,7 @@ def test_no_prediction_across_a_scene_cut(name: str) -> None:
     before = _copy(r.render(0, 1.0 - 1 / 60))
     after = _copy(r.render(1, 1.0 + 1 / 120))
     assert after.meta.flags & FrameFlags.RESET
-    p = create(name, "cpu")
+    p = _create(name)
     p.observe(before)
     cam = after.meta.camera
     assert p.predict(cam.view, cam.proj, after.meta.flags) is None
@@ -112,24 +121,26 @@ def test_fast_yaw_180_deg_per_s_beats_repeat() -> None:
     r.apply_input(CameraInput(dyaw_deg=180.0 / 60.0))
     truth = r.render(1, 1 / 60)
     scores = {}
-    for name in ("repeat", "splat", "mpe"):
-        p = create(name, "cpu")
+    for name in ("repeat", "splat", "mpe", "mpe_torch"):
+        p = _create(name)
         p.observe(cached)
         pred = p.predict(truth.meta.camera.view, truth.meta.camera.proj)
         assert pred is not None
         scores[name] = metrics.psnr(truth.color, pred.color)
-    assert scores["mpe"] > scores["repeat"] + 5.0, scores
-    assert scores["mpe"] > scores["splat"], scores
+    for mpe in ("mpe", "mpe_torch"):
+        assert scores[mpe] > scores["repeat"] + 5.0, scores
+        assert scores[mpe] > scores["splat"], scores
 
 
+@pytest.mark.parametrize("backend", BACKENDS)
 @pytest.mark.parametrize("tile", [8, 16])
-def test_tiles_on_sizes_they_do_not_divide(tile: int) -> None:
+def test_tiles_on_sizes_they_do_not_divide(tile: int, backend: str) -> None:
     size = Size(161, 91)
     first, second = _pair("fast_yaw", size, 0.4)
     vxy = vertex_pixels(torch.from_numpy(first.depth), torch.zeros(91, 161, dtype=torch.bool), tile)
     assert vxy.shape[:2] == (-(-91 // tile), -(-161 // tile))
     assert int(vxy[..., 0].max()) < 161 and int(vxy[..., 1].max()) < 91
-    p = MeshProjectionPredictor(MpeOptions(tile=tile), "cpu")
+    p = MeshProjectionPredictor(MpeOptions(tile=tile, backend=backend), "cpu")
     p.observe(first)
     pred = p.predict(second.meta.camera.view, second.meta.camera.proj)
     assert pred is not None
@@ -147,7 +158,7 @@ def test_geometry_at_the_near_plane_and_behind_the_camera(name: str) -> None:
     depth = np.zeros((size.height, size.width), np.float32)  # everything on the near plane
     depth[:, size.width // 2 :] = 0.5  # and a wall 0.2 m away
     depth[::7, ::5] = 1.0  # and some sky
-    p = create(name, "cpu")
+    p = _create(name)
     p.observe(_frame(color, depth, np.eye(4), _proj(size)))
     # Step 1 m forward (all but the sky is now behind the eye), then turn around.
     for view in (_yawed_view(0.0, (0.0, 0.0, -1.0)), _yawed_view(180.0, (0.0, 0.0, -1.0))):
@@ -158,7 +169,8 @@ def test_geometry_at_the_near_plane_and_behind_the_camera(name: str) -> None:
         assert ((pred.depth >= 0) & (pred.depth <= 1)).all()
 
 
-def test_sky_reprojects_by_rotation_only() -> None:
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_sky_reprojects_by_rotation_only(backend: str) -> None:
     size = Size(160, 90)
     h, w = size.height, size.width
     ys, xs = np.mgrid[0:h, 0:w].astype(np.float64) + 0.5
@@ -179,7 +191,7 @@ def test_sky_reprojects_by_rotation_only() -> None:
 
     cached_view = _yawed_view(10.0)
     color = paint(*directions(cached_view)).clip(0, 255).round()
-    p = MeshProjectionPredictor(device="cpu")
+    p = MeshProjectionPredictor(MpeOptions(backend=backend), "cpu")
     p.observe(_frame(color, np.ones((h, w)), cached_view, proj))
     # Turn 4 degrees and walk 20 m: sky must follow the rotation and ignore the walk.
     new_view = _yawed_view(14.0, (3.0, 1.0, -20.0))
@@ -198,7 +210,8 @@ def test_nan_depth_is_sanitized(name: str) -> None:
     first, second = _pair("dolly", SMALL, 0.5)
     first.depth[10:30, 20:60] = np.nan
     first.depth[0, :] = np.inf
-    p = create(name, "cpu")
+    first.depth[-1, :5] = -np.inf
+    p = _create(name)
     p.observe(first)
     pred = p.predict(second.meta.camera.view, second.meta.camera.proj)
     assert pred is not None
@@ -207,7 +220,12 @@ def test_nan_depth_is_sanitized(name: str) -> None:
 
 
 @pytest.mark.parametrize(
-    "options", [MpeOptions(), MpeOptions(tile=8), MpeOptions(tensile=False, shear=False)]
+    "options",
+    [
+        MpeOptions(backend=backend, **kw)
+        for backend in BACKENDS
+        for kw in ({}, {"tile": 8}, {"tensile": False, "shear": False})
+    ],
 )
 def test_identity_camera_reproduces_the_cached_frame(options: MpeOptions) -> None:
     r = Renderer("moving_objects", SMALL, jitter=False)
@@ -233,13 +251,14 @@ def test_identity_camera_baselines(name: str) -> None:
     assert np.array_equal(pred.color, first.color)
 
 
-def test_pinned_edges_keep_the_border_covered() -> None:
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_pinned_edges_keep_the_border_covered(backend: str) -> None:
     # Cache the frame a step further along the dolly, predict the camera a step back:
     # the image shrinks, so without pinned edges the border would be uncovered.
     r = Renderer("dolly", SMALL, jitter=False)
     truth = _copy(r.render(0, 0.5))
     cached = _copy(r.render(1, 0.5 + 4 / 60))
-    p = MeshProjectionPredictor(device="cpu")
+    p = MeshProjectionPredictor(MpeOptions(backend=backend), "cpu")
     p.observe(cached)
     pred = p.predict(truth.meta.camera.view, truth.meta.camera.proj)
     assert pred is not None

@@ -114,15 +114,27 @@ class FramePredictor(ABC):
     ) -> Prediction | None:
         """The frame seen from camera (view, proj), or None when there is nothing to predict."""
         cache = self._cache
-        if cache is None or flags & FrameFlags.RESET:
-            return None
-        reproj = Reprojection.between(cache.view, cache.proj, view, proj)
-        if reproj is None:
+        camera = None if cache is None else (cache.view, cache.proj)
+        reproj = reprojection_from(camera, view, proj, flags)
+        if cache is None or reproj is None:
             return None
         return self._predict(cache, reproj)
 
     @abstractmethod
     def _predict(self, cache: CachedFrame, reproj: Reprojection) -> Prediction: ...
+
+
+def reprojection_from(
+    cached_camera: tuple[npt.ArrayLike, npt.ArrayLike] | None,
+    view: npt.ArrayLike,
+    proj: npt.ArrayLike,
+    flags: FrameFlags,
+) -> Reprojection | None:
+    """The cached (view, proj) -> (view, proj) reprojection, or None when there is nothing
+    to predict: nothing cached, a scene cut between (RESET), a non-finite or singular matrix."""
+    if cached_camera is None or flags & FrameFlags.RESET:
+        return None
+    return Reprojection.between(*cached_camera, view, proj)
 
 
 def to_prediction(

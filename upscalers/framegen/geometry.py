@@ -25,11 +25,13 @@ F64Array = npt.NDArray[np.float64]
 MIN_CLIP_W = 1e-6
 
 
-def _finite_inverse(m: F64Array) -> F64Array | None:
-    if not np.all(np.isfinite(m)):
+def _finite_inverses(ms: F64Array) -> F64Array | None:
+    """Inverses of a stack of matrices (one batched call), or None if any is non-finite or
+    singular."""
+    if not np.all(np.isfinite(ms)):
         return None
     try:
-        inv = np.linalg.inv(m)
+        inv = np.linalg.inv(ms)
     except np.linalg.LinAlgError:
         return None
     return np.asarray(inv, dtype=np.float64) if np.all(np.isfinite(inv)) else None
@@ -57,9 +59,10 @@ class Reprojection:
         )
         if any(m.shape != (4, 4) for m in (v0, p0, v1, p1)):
             return None
-        v0_inv, p0_inv, v1_inv, p1_inv = (_finite_inverse(m) for m in (v0, p0, v1, p1))
-        if v0_inv is None or p0_inv is None or v1_inv is None or p1_inv is None:
+        inverses = _finite_inverses(np.stack((v0, p0, v1, p1)))
+        if inverses is None:
             return None
+        v0_inv, p0_inv, v1_inv, p1_inv = inverses
         forward = p1 @ v1 @ v0_inv @ p0_inv
         inverse = p0 @ v0 @ v1_inv @ p1_inv
         z0, z1 = _z_at_infinity(p0_inv), _z_at_infinity(p1_inv)
@@ -70,6 +73,21 @@ class Reprojection:
     def tensor(self, which: str, device: torch.device) -> torch.Tensor:
         m = self.forward if which == "forward" else self.inverse
         return torch.as_tensor(m, dtype=torch.float32, device=device)
+
+
+def pixel_space_matrices(reproj: Reprojection, w: int, h: int) -> tuple[F64Array, F64Array]:
+    """The reprojection on pixel coordinates, for the pixel stage.
+
+    ``F`` takes a cached pixel (u, v, depth, 1) to new clip space; ``G`` takes a
+    new pixel (x, y, depth, 1) to cached homogeneous pixels.
+    """
+    to_ndc = np.array(
+        [[2.0 / w, 0, 0, -1.0], [0, -2.0 / h, 0, 1.0], [0, 0, 1.0, 0], [0, 0, 0, 1.0]]
+    )
+    to_pix = np.array(
+        [[w / 2.0, 0, 0, w / 2.0], [0, -h / 2.0, 0, h / 2.0], [0, 0, 1.0, 0], [0, 0, 0, 1.0]]
+    )
+    return reproj.forward @ to_ndc, to_pix @ reproj.inverse @ to_ndc
 
 
 def _z_at_infinity(p_inv: F64Array) -> float | None:

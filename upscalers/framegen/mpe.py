@@ -22,21 +22,37 @@ under a dynamic object (filled by pull-push, the game draws its moving
 objects there), the true source is off the cached screen (pinned-edge
 stretch), or the depth check disagrees (disocclusion: the surface was hidden
 in the cached frame; the tensile correction gives it background colour).
+
+Backends (``MpeOptions.backend``): this file is the torch implementation, the
+reference and the CUDA path; on the CPU the same steps run as compiled numba
+loops (``mpe_cpu.py``, ``cpu_kernels.py``), with the same options and outputs,
+because eager torch pays for every 230k-pixel intermediate tensor.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Literal
 
-import numpy as np
+import numpy.typing as npt
 import torch
 
-from upscalers.framegen.base import CachedFrame, FramePredictor, Prediction, to_prediction
+from server.frame import FrameFlags, RenderFrame
+from upscalers.framegen.base import (
+    CachedFrame,
+    FramePredictor,
+    Prediction,
+    reprojection_from,
+    to_prediction,
+)
 from upscalers.framegen.fill import pull_push_fill
-from upscalers.framegen.geometry import Reprojection, sky_as_direction
+from upscalers.framegen.geometry import Reprojection, pixel_space_matrices, sky_as_direction
 from upscalers.framegen.mesh import MeshOptions, build_mesh
 from upscalers.framegen.raster import rasterize
 from upscalers.framegen.sample import bilinear, inside, nearest_index, to_texture
+
+if TYPE_CHECKING:
+    from upscalers.framegen.mpe_cpu import HostMeshProjection
 
 DEFAULT_TILE = 16  # the paper: n between 8 and 16
 
@@ -52,6 +68,19 @@ class MpeOptions:
     shear_iterations: int = 1
     # Larger clipped bounding boxes come from vertices next to the eye; dropped (holes).
     max_bbox_share: float = 0.125
+    # "numba": compiled CPU kernels (mpe_cpu.py); "torch": this file, the reference and the
+    # CUDA path; "auto": numba on the CPU, torch elsewhere.
+    backend: Literal["auto", "torch", "numba"] = "auto"
+
+
+def _resolve_backend(backend: str, device: torch.device) -> Literal["torch", "numba"]:
+    if backend == "torch" or (backend == "auto" and device.type != "cpu"):
+        return "torch"
+    if backend in ("auto", "numba"):
+        if device.type != "cpu":
+            raise ValueError(f"MpeOptions.backend 'numba' runs on the CPU, not on {device}")
+        return "numba"
+    raise ValueError(f"MpeOptions.backend must be auto, torch or numba, got {backend!r}")
 
 
 class MeshProjectionPredictor(FramePredictor):
@@ -64,6 +93,36 @@ class MeshProjectionPredictor(FramePredictor):
         self.options = options or MpeOptions()
         if not 2 <= self.options.tile <= 64:
             raise ValueError(f"tile must be in [2, 64] pixels, got {self.options.tile}")
+        self.backend = _resolve_backend(self.options.backend, self.device)
+        self._host: HostMeshProjection | None = None
+        if self.backend == "numba":
+            # Imported here: numba (and compiling its kernels) is paid only by CPU users.
+            from upscalers.framegen.mpe_cpu import HostMeshProjection, warm_up
+
+            warm_up(self.options)
+            self._host = HostMeshProjection(self.options)
+
+    def reset(self) -> None:
+        super().reset()
+        if self._host is not None:
+            self._host.reset()
+
+    def observe(self, frame: RenderFrame) -> None:
+        if self._host is None:
+            super().observe(frame)
+        else:
+            self._host.observe(frame)
+
+    def predict(
+        self, view: npt.ArrayLike, proj: npt.ArrayLike, flags: FrameFlags = FrameFlags.NONE
+    ) -> Prediction | None:
+        host = self._host
+        if host is None:
+            return super().predict(view, proj, flags)
+        cached = host.frame
+        camera = None if cached is None else (cached.view, cached.proj)
+        reproj = reprojection_from(camera, view, proj, flags)
+        return None if reproj is None else host.predict(reproj)
 
     def _predict(self, cache: CachedFrame, reproj: Reprojection) -> Prediction:
         o = self.options
@@ -86,16 +145,8 @@ class MeshProjectionPredictor(FramePredictor):
         ras = rasterize(tris, w, h, max(16, int(o.max_bbox_share * w * h)))
         u, v = ras.attrs
 
-        # Matrices on pixel coordinates: F takes a cached pixel (u, v, depth) to new
-        # clip space; G takes a new pixel (x, y, depth) to cached homogeneous pixels.
-        to_ndc = np.array(
-            [[2.0 / w, 0, 0, -1.0], [0, -2.0 / h, 0, 1.0], [0, 0, 1.0, 0], [0, 0, 0, 1.0]]
-        )
-        to_pix = np.array(
-            [[w / 2.0, 0, 0, w / 2.0], [0, -h / 2.0, 0, h / 2.0], [0, 0, 1.0, 0], [0, 0, 0, 1.0]]
-        )
-        fm = (reproj.forward @ to_ndc).tolist()
-        gm = (to_pix @ reproj.inverse @ to_ndc).tolist()
+        f_pix, g_pix = pixel_space_matrices(reproj, w, h)
+        fm, gm = f_pix.tolist(), g_pix.tolist()
         zi0, zi1 = reproj.cached_z_inf, reproj.new_z_inf
         flat_depth = depth_eff.view(-1)
         xs = torch.arange(w, device=dev, dtype=torch.float32) + 0.5
