@@ -153,7 +153,7 @@ def worker_registry(worker: UpscaleWorker) -> CollectorRegistry:
             "upcast_worker_frames_dropped",
             "Frames not presented (upscale_error, ring_u_full, truncated in ring R, "
             "prediction_refused: a predicted tick with no full render to predict from, "
-            "prediction_error)",
+            "prediction_error, prediction_warming: the predictor was still compiling)",
             labels=["reason"],
         )
         dropped.add_metric(["upscale_error"], s.errors)
@@ -162,6 +162,7 @@ def worker_registry(worker: UpscaleWorker) -> CollectorRegistry:
         pred = worker.prediction.stats
         dropped.add_metric(["prediction_refused"], pred.refused)
         dropped.add_metric(["prediction_error"], pred.errors)
+        dropped.add_metric(["prediction_warming"], pred.warming)
         yield dropped
         yield _counter(
             "upcast_worker_frames_predicted",

@@ -88,7 +88,7 @@ class UpscaleWorker:
     ) -> None:
         ring_out.require_fits(*host.display_size, what="display size")
         # Turns the game's PREDICTED ticks (only moving objects drawn) into whole frames.
-        self.prediction = prediction or PredictionStage()
+        self.prediction = prediction or PredictionStage(background=True)
         self.ring_in = ring_in
         self.ring_out = ring_out
         self.host = host
@@ -170,6 +170,7 @@ class UpscaleWorker:
             "predicted": self.prediction.stats.predicted,
             "prediction_refused": self.prediction.stats.refused,
             "prediction_errors": self.prediction.stats.errors,
+            "prediction_warming": self.prediction.stats.warming,
             "sanitized_values": self.host.sanitized_values,
             "sanitized_frames": self.host.sanitized_frames,
         }
@@ -196,9 +197,8 @@ def run_worker(config: WorkerConfig, stop: threading.Event | None = None) -> int
     ring_in = attach_render_ring(config.ring_in, wait_s=config.attach_timeout_s)
     ring_out = attach_display_ring(config.ring_out, wait_s=config.attach_timeout_s)
     host = UpscalerHost(config.upscaler, Size.parse(config.display_size), compile=config.compile)
-    worker = UpscaleWorker(
-        ring_in, ring_out, host, newest=config.newest, prediction=PredictionStage(config.predictor)
-    )
+    prediction = PredictionStage(config.predictor, background=True)
+    worker = UpscaleWorker(ring_in, ring_out, host, newest=config.newest, prediction=prediction)
     serve_metrics(worker_registry(worker), config.metrics_port, "worker")
     control = ControlServer(config.control_path) if config.control_path else None
     log.info(

@@ -16,6 +16,8 @@ observe cost is counted where it belongs, on the predicted frame.
 from __future__ import annotations
 
 import logging
+import threading
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,6 +34,7 @@ log = logging.getLogger(__name__)
 class PredictionStats:
     predicted: int = 0  # predicted frames handed on to the upscaler
     refused: int = 0  # predicted ticks with nothing to predict from (no full render yet, a cut)
+    warming: int = 0  # predicted ticks that came while the predictor was still compiling
     errors: int = 0  # predicted ticks whose prediction raised
 
 
@@ -52,12 +55,49 @@ def _copy_frame(frame: RenderFrame, into: RenderFrame | None) -> RenderFrame:
 
 
 class PredictionStage:
-    def __init__(self, predictor: str = "mpe", device: str | torch.device = "cpu") -> None:
+    """``background=True`` builds the predictor on a thread: MPE's CPU kernels compile on
+    first use (about 18 s with an empty numba cache, under 1 s from it), and neither
+    the worker's start nor a session without frame generation should wait for that.
+    Predicted ticks that arrive meanwhile are skipped (``stats.warming``)."""
+
+    def __init__(
+        self,
+        predictor: str = "mpe",
+        device: str | torch.device = "cpu",
+        *,
+        background: bool = False,
+    ) -> None:
+        if predictor not in framegen.available():
+            raise ValueError(
+                f"unknown frame predictor {predictor!r}; allowed: {', '.join(framegen.available())}"
+            )
         self.predictor_name = predictor
-        self.predictor = framegen.create(predictor, device)
         self.stats = PredictionStats()
+        self._predictor: framegen.FramePredictor | None = None
+        self._ready = threading.Event()
         self._last_rendered: RenderFrame | None = None
         self._observed_id: int | None = None
+        if background:
+            threading.Thread(
+                target=self._build, args=(device,), name="predictor-warm-up", daemon=True
+            ).start()
+        else:
+            self._build(device)
+
+    def _build(self, device: str | torch.device) -> None:
+        start = time.monotonic()
+        try:
+            self._predictor = framegen.create(self.predictor_name, device)
+        except Exception:
+            log.exception("frame predictor %s could not be built", self.predictor_name)
+            return
+        self._ready.set()
+        log.info(
+            "frame predictor %s ready in %.1f s", self.predictor_name, time.monotonic() - start
+        )
+
+    def wait_ready(self, timeout_s: float | None = None) -> bool:
+        return self._ready.wait(timeout_s)
 
     def rendered(self, frame: RenderFrame) -> None:
         """Keep the latest full render (call while its ring slot is still held)."""
@@ -66,17 +106,21 @@ class PredictionStage:
 
     def predict(self, layer: RenderFrame) -> RenderFrame | None:
         """The frame for a PREDICTED tick, or None when it cannot be predicted."""
+        predictor = self._predictor
+        if predictor is None:
+            self.stats.warming += 1
+            return None
         source = self._last_rendered
         if source is None or source.size != layer.size:  # nothing yet, or the scale changed
             self.stats.refused += 1
             return None
         try:
             if self._observed_id != source.meta.frame_id:
-                self.predictor.observe(source)
+                predictor.observe(source)
                 self._observed_id = source.meta.frame_id
             cam = layer.meta.camera
             # RESET on the tick means a cut lies between it and the source: never predict across.
-            prediction = self.predictor.predict(cam.view, cam.proj, layer.meta.flags)
+            prediction = predictor.predict(cam.view, cam.proj, layer.meta.flags)
             if prediction is None:
                 self.stats.refused += 1
                 return None

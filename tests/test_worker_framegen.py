@@ -195,3 +195,35 @@ def test_composite_depth_tests_the_layer_against_the_prediction() -> None:
     assert out.dynamic_mask.sum() == 1 and out.meta.frame_id == 7
     with pytest.raises(ValueError, match="dynamic layer"):
         composite_dynamic(pred, dataclasses.replace(layer, color=layer.color[:2], depth=depth[:2]))
+
+
+def test_a_predictor_still_building_skips_ticks_and_never_blocks(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    import threading
+
+    from upscalers import framegen
+
+    release = threading.Event()
+    real_create = framegen.create
+
+    def slow_create(name: str, device: object = None) -> framegen.FramePredictor:
+        release.wait(10.0)  # what an empty numba cache looks like: seconds of compiling
+        return real_create(name, "cpu")
+
+    monkeypatch.setattr(framegen, "create", slow_create)
+    stage = PredictionStage(background=True)
+    sent, _ = ticks("slow_pan", 4)
+    stage.rendered(sent[0])
+    assert stage.predict(sent[1]) is None  # returns at once, the tick is skipped
+    assert stage.stats.warming == 1
+    release.set()
+    assert stage.wait_ready(30.0)
+    stage.rendered(sent[2])
+    assert stage.predict(sent[3]) is not None
+    assert stage.stats.predicted == 1
+
+
+def test_an_unknown_predictor_is_refused_by_name() -> None:
+    with pytest.raises(ValueError, match=r"unknown frame predictor 'nope'; allowed: .*mpe"):
+        PredictionStage("nope")
