@@ -31,7 +31,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--frame-generation",
         action=argparse.BooleanOptionalAction,
         default=None,
-        help="frame generation on/off (not available yet)",
+        help="frame generation on/off (the game renders every other frame, the worker predicts)",
     )
     parser.add_argument("--timeout", type=float, default=15.0, help="seconds to wait for it")
 
