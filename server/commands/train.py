@@ -61,7 +61,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--render-size", default="640x360", help="render size WxH (2x truth)")
     parser.add_argument("--batch", type=_positive_int, default=8, help="crops per step")
     parser.add_argument("--crop", type=_positive_int, default=96, help="crop side, render px")
-    parser.add_argument("--lr", type=_positive_float, default=2e-3, help="peak learning rate")
+    parser.add_argument("--lr", type=_positive_float, default=1e-3, help="peak learning rate")
     parser.add_argument("--threads", type=_positive_int, default=2, help="torch CPU threads")
     parser.add_argument(
         "--scenes", default="all", help="comma-separated scenes to render (default all)"

@@ -27,13 +27,15 @@ from server.train.dataset import Dataset
 from upscalers.neural.features import FrameTensors, History, build_features
 from upscalers.neural.network import predict
 
+GRAD_CLIP = 1.0
+
 
 @dataclass(frozen=True)
 class TrainConfig:
     steps: int = 1500
     batch: int = 8
     crop: int = 96  # render pixels
-    lr: float = 2e-3
+    lr: float = 1e-3
     final_lr: float = 5e-5
     seed: int = 0
     minutes: float | None = None  # stop early (and say so) past this wall time
@@ -139,6 +141,9 @@ def train(
             history = History(y.detach(), dfeat)
         loss = torch.stack(losses).mean()
         loss.backward()  # type: ignore[no-untyped-call]
+        # A recurrent unroll occasionally spikes (a bad history feeds the next frame):
+        # clipping keeps one such batch from undoing what was learnt.
+        torch.nn.utils.clip_grad_norm_(model.parameters(), GRAD_CLIP)
         opt.step()
         recent.append(float(loss.detach()))
         recent = recent[-50:]

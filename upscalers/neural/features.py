@@ -32,6 +32,7 @@ BASE_CHANNELS = 10
 MOTION_UNIT = 8.0
 MOTION_LIMIT = 4.0
 DEPTH_CHANGE_GAIN = 8.0
+JITTER_CHANNELS = slice(6, 8)
 
 
 def feature_channels(scale: int = SCALE) -> int:
@@ -122,22 +123,35 @@ def _warp_render_plane(plane: torch.Tensor, motion: torch.Tensor) -> torch.Tenso
     return F.grid_sample(plane, grid, mode="nearest", padding_mode="border", align_corners=False)
 
 
-def bilinear_phases(color: torch.Tensor, scale: int) -> torch.Tensor:
-    """(N, 3, h, w) -> (N, 3 s s, h, w): bilinear upsampling (align_corners=False, edges
-    clamped) already in pixel_unshuffle order, as one grouped 3x3 convolution at render
-    size instead of a display-size pass."""
-    taps = []
-    for a in range(scale):
-        # Display pixel offset a of render pixel i sits at render coordinate i + d.
-        d = (a + 0.5) / scale - 0.5
-        row = [0.0, 1.0 - abs(d), 0.0]
-        row[0 if d < 0 else 2] = abs(d)
-        taps.append(row)
-    t = torch.tensor(taps, dtype=color.dtype, device=color.device)  # (s, 3)
-    kernel = torch.einsum("ay,bx->abyx", t, t).reshape(scale * scale, 1, 3, 3)
-    weight = kernel.repeat(3, 1, 1, 1)  # (3 s s, 1, 3, 3): group c -> phases of c
-    padded = F.pad(color, (1, 1, 1, 1), mode="replicate")
-    return F.conv2d(padded, weight, groups=3)
+def bilinear_phases(
+    color: torch.Tensor, scale: int, jitter: torch.Tensor | None = None
+) -> torch.Tensor:
+    """(N, 3, h, w) -> (N, 3 s s, h, w): bilinear upsampling (edges clamped) in
+    pixel_unshuffle order, as one grouped 3x3 convolution at render size instead of a
+    display-size pass. With ``jitter`` (N, 2), render pixel i is taken to sit at
+    i + 0.5 + j, where this frame sampled it, so the result is aligned with the
+    unjittered display grid whatever the jitter (a shifted base would leave the
+    network a sub-pixel shift to undo)."""
+    n = color.shape[0]
+    dev = color.device
+    # Display sub-pixel a of render pixel i lies at render coordinate i + (a + 0.5) / s;
+    # its offset from sample i is d = (a + 0.5) / s - 0.5 - j, |d| < 1.
+    sub = (torch.arange(scale, device=dev, dtype=torch.float32) + 0.5) / scale - 0.5
+    j = torch.zeros((n, 2), device=dev) if jitter is None else jitter.to(dev, torch.float32)
+    d = sub.view(1, 1, scale) - j.view(n, 2, 1)  # (N, axis, s)
+    taps = torch.stack((F.relu(-d), 1.0 - d.abs(), F.relu(d)), -1)  # (N, axis, s, 3)
+    tx, ty = taps[:, 0], taps[:, 1]
+    kernel = torch.einsum("nay,nbx->nabyx", ty, tx).reshape(n, 1, scale * scale, 3, 3)
+    weight = kernel.expand(n, 3, scale * scale, 3, 3).reshape(n * 3 * scale * scale, 1, 3, 3)
+    _, c, h, w = color.shape
+    padded = F.pad(color, (1, 1, 1, 1), mode="replicate").reshape(1, n * c, h + 2, w + 2)
+    out = F.conv2d(padded, weight.to(color.dtype), groups=n * c)
+    return out.view(n, c * scale * scale, h, w)
+
+
+def jitter_of(features: torch.Tensor) -> torch.Tensor:
+    """(N, 2) jitter in render pixels, read back from the feature planes."""
+    return features[:, JITTER_CHANNELS, 0, 0].float() / 2.0
 
 
 def build_features(
@@ -168,7 +182,7 @@ def build_features(
         change = (dfeat - prev_depth).mul(DEPTH_CHANGE_GAIN).clamp(-1.0, 1.0).mul(valid)
     else:
         valid = torch.zeros((b, 1, h, w), device=color.device, dtype=dt)
-        warped = bilinear_phases(color, scale)
+        warped = bilinear_phases(color, scale, jitter)
         change = torch.zeros_like(valid)
     x = torch.cat((color, dfeat, motion_feat, jit, valid, change, warped), 1)
     return torch.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0), dfeat

@@ -16,7 +16,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from upscalers.neural.features import bilinear_phases, feature_channels
+from upscalers.neural.features import bilinear_phases, feature_channels, jitter_of
 from upscalers.neural.unet import UNet
 from upscalers.neural.unetpp import UNetPlusPlus
 
@@ -94,13 +94,14 @@ def pad_to_multiple(x: torch.Tensor, multiple: int) -> torch.Tensor:
 
 def predict(model: nn.Module, features: torch.Tensor, scale: int) -> torch.Tensor:
     """Features (N, C, h, w) -> image (N, 3, s h, s w): the network's residual on top of
-    a bilinear upsampling of the colour, clamped to [0, 1]. Any h, w (padded to the
-    network's multiple, cropped back)."""
+    a bilinear upsampling of the colour from where its samples really lay (jitter
+    compensated), clamped to [0, 1]. Any h, w (padded to the network's multiple,
+    cropped back)."""
     h, w = features.shape[-2:]
     multiple = int(getattr(model, "multiple", 1))
     x = pad_to_multiple(features, multiple)
     residual = model(x)[..., :h, :w]
-    phases = bilinear_phases(features[:, :3], scale) + residual
+    phases = bilinear_phases(features[:, :3], scale, jitter_of(features)) + residual
     return F.pixel_shuffle(phases, scale).clamp(0.0, 1.0)
 
 
