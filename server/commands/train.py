@@ -58,6 +58,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--data-dir", type=Path, default=DEFAULT_DATA_DIR, help="where the dataset is cached"
     )
     parser.add_argument("--sequences", type=_positive_int, default=96, help="rendered sequences")
+    parser.add_argument(
+        "--frames",
+        type=_positive_int,
+        default=10,
+        help="frames per sequence; the last 3 have ground truth, the others warm up history",
+    )
     parser.add_argument("--render-size", default="640x360", help="render size WxH (2x truth)")
     parser.add_argument("--batch", type=_positive_int, default=8, help="crops per step")
     parser.add_argument("--crop", type=_positive_int, default=96, help="crop side, render px")
@@ -92,8 +98,11 @@ def run(args: argparse.Namespace) -> int:
     if args.crop > min(render):
         raise SystemExit(f"--crop {args.crop} is larger than the render size {render}")
     scale = 2
+    if args.frames < 3:
+        raise SystemExit(f"--frames must be >= 3 (3 frames have ground truth), got {args.frames}")
     spec = DatasetSpec(
         sequences=args.sequences,
+        frames=args.frames,
         render_size=str(render),
         scale=scale,
         seed=args.seed,
@@ -156,7 +165,7 @@ def run(args: argparse.Namespace) -> int:
         "gflops_640x360": round(flops[""] / 1e9, 3),
         "threads": args.threads,
         "machine": platform.processor() or platform.machine(),
-        "torch": torch.__version__,
+        "torch": str(torch.__version__),
     }
     save_checkpoint(out, args.model, model, scale, meta)
     total = time.monotonic() - started
