@@ -112,7 +112,6 @@ def run(args: argparse.Namespace) -> int:
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
     np.random.seed(args.seed)
-    torch.use_deterministic_algorithms(True, warn_only=True)
 
     started = time.monotonic()
     print(f"[data] {spec.sequences} sequences at {render} -> 2x, cache {args.data_dir}",
