@@ -26,6 +26,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "control": ("control", "change a session's upscaler or scale over MoQ; print the result"),
     "loadtest": ("loadtest", "many moq-lite viewers against a relay: fps, loss, latency, CPU"),
     "token": ("token", "make the relay's key file (generate) and tokens signed with it (sign)"),
+    "train": ("train", "train a neural upscaler (unet, unetpp) on the game's own frames"),
 }
 
 

@@ -9,6 +9,7 @@ from typing import Any
 from upscalers.base import Upscaler
 from upscalers.fsr1 import EasuRcasUpscaler, EasuUpscaler
 from upscalers.lanczos import Lanczos2Upscaler
+from upscalers.neural.upscaler import UNetPlusPlusUpscaler, UNetUpscaler
 from upscalers.resample import BicubicUpscaler, BilinearUpscaler, NearestUpscaler
 from upscalers.temporal import TemporalUpscaler
 
@@ -22,6 +23,8 @@ _REGISTRY: dict[str, Callable[..., Upscaler]] = {
         EasuUpscaler,
         EasuRcasUpscaler,
         TemporalUpscaler,
+        UNetUpscaler,
+        UNetPlusPlusUpscaler,
     )
 }
 

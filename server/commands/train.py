@@ -1,0 +1,177 @@
+"""``upcast train``: train a neural upscaler on the game's own frames and ground truth.
+
+Renders (or loads from --data-dir) the training sequences, trains with a fixed
+number of steps from --seed (same seed and arguments on the same machine: the
+same weights), and writes a float16 checkpoint that ``upscalers.neural.load``
+reads. Progress: the stage, step/total, loss and the time left, on stderr.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import shlex
+import sys
+import time
+from pathlib import Path
+
+DEFAULT_DATA_DIR = Path.home() / ".cache" / "upcast"
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
+
+
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not value > 0.0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {value}")
+    return value
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--model", required=True, choices=("unet", "unetpp"), help="network to train"
+    )
+    parser.add_argument("--seed", type=int, default=0, help="seeds data, crops and weights")
+    parser.add_argument("--steps", type=_positive_int, default=1500, help="optimizer steps")
+    parser.add_argument(
+        "--minutes",
+        type=_positive_float,
+        default=None,
+        help="wall-time cap for the training stage: stop early (and say so) past it",
+    )
+    parser.add_argument(
+        "--out", type=Path, default=None, help="checkpoint (default: the shipped weights path)"
+    )
+    parser.add_argument(
+        "--data-dir", type=Path, default=DEFAULT_DATA_DIR, help="where the dataset is cached"
+    )
+    parser.add_argument("--sequences", type=_positive_int, default=96, help="rendered sequences")
+    parser.add_argument(
+        "--frames",
+        type=_positive_int,
+        default=10,
+        help="frames per sequence; the last 3 have ground truth, the others warm up history",
+    )
+    parser.add_argument("--render-size", default="640x360", help="render size WxH (2x truth)")
+    parser.add_argument("--batch", type=_positive_int, default=8, help="crops per step")
+    parser.add_argument("--crop", type=_positive_int, default=96, help="crop side, render px")
+    parser.add_argument("--lr", type=_positive_float, default=1e-3, help="peak learning rate")
+    parser.add_argument("--threads", type=_positive_int, default=2, help="torch CPU threads")
+    parser.add_argument(
+        "--scenes", default="all", help="comma-separated scenes to render (default all)"
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    import numpy as np
+    import torch
+
+    from server.frame import Size
+    from server.render.scenes import parse_scene_list
+    from server.train.dataset import DatasetSpec, load_or_generate
+    from server.train.loop import TrainConfig, train
+    from upscalers.neural.features import feature_channels
+    from upscalers.neural.flops import conv_flops
+    from upscalers.neural.network import (
+        WEIGHTS_DIR,
+        build_model,
+        save_checkpoint,
+        with_memory_format,
+    )
+
+    try:
+        render = Size.parse(args.render_size)
+    except ValueError as e:
+        raise SystemExit(f"--render-size: {e}") from None
+    if args.crop > min(render):
+        raise SystemExit(f"--crop {args.crop} is larger than the render size {render}")
+    scale = 2
+    if args.frames < 3:
+        raise SystemExit(f"--frames must be >= 3 (3 frames have ground truth), got {args.frames}")
+    spec = DatasetSpec(
+        sequences=args.sequences,
+        frames=args.frames,
+        render_size=str(render),
+        scale=scale,
+        seed=args.seed,
+        scenes=tuple(parse_scene_list(args.scenes)),
+    )
+    out: Path = args.out or WEIGHTS_DIR / f"{args.model}.pt"
+    torch.set_num_threads(args.threads)
+    torch.manual_seed(args.seed)
+    np.random.seed(args.seed)
+
+    started = time.monotonic()
+    print(f"[data] {spec.sequences} sequences at {render} -> 2x, cache {args.data_dir}",
+          file=sys.stderr)  # fmt: skip
+    data = load_or_generate(spec, args.data_dir)
+    data_s = time.monotonic() - started
+
+    model = build_model(args.model, scale)
+    model = with_memory_format(model, torch.channels_last)
+    cfg = TrainConfig(
+        steps=args.steps,
+        batch=args.batch,
+        crop=args.crop,
+        lr=args.lr,
+        seed=args.seed,
+        minutes=args.minutes,
+    )
+    result = train(model, data, cfg, scale)
+    if result.stopped_early:
+        print(
+            f"[train] stopped at step {result.steps_done}/{cfg.steps}: --minutes {args.minutes} "
+            "reached (the weights are not the reproducible full run)",
+            file=sys.stderr,
+        )
+    model = with_memory_format(model, torch.contiguous_format)
+    flops = conv_flops(model, (1, feature_channels(scale), 360, 640))
+    meta = {
+        "command": "upcast train " + shlex.join(sys.argv[2:] if len(sys.argv) > 2 else []),
+        "seed": args.seed,
+        "steps": result.steps_done,
+        "steps_planned": cfg.steps,
+        "stopped_early": result.stopped_early,
+        "batch": cfg.batch,
+        "crop": cfg.crop,
+        "lr": cfg.lr,
+        "final_l1": result.final_loss,
+        "train_seconds": round(result.seconds, 1),
+        "data_seconds": round(data_s, 1),
+        "dataset": json.dumps(
+            {
+                "sequences": spec.sequences,
+                "frames": spec.frames,
+                "truth": spec.truth_frames,
+                "render": spec.render_size,
+                "supersample": spec.supersample,
+                "key": spec.key(),
+            }
+        ),
+        "params": sum(p.numel() for p in model.parameters()),
+        "gflops_640x360": round(flops[""] / 1e9, 3),
+        "threads": args.threads,
+        "machine": platform.processor() or platform.machine(),
+        "torch": str(torch.__version__),
+    }
+    save_checkpoint(out, args.model, model, scale, meta)
+    total = time.monotonic() - started
+    print(
+        f"[done] {out} ({out.stat().st_size / 1e6:.2f} MB), {result.steps_done} steps, "
+        f"L1 {result.final_loss:.4f}, data {data_s:.0f} s + train {result.seconds:.0f} s "
+        f"= {total / 60:.1f} min",
+        file=sys.stderr,
+    )
+    return 0

@@ -1,0 +1,159 @@
+"""Training data: short jittered sequences of the game's own scenes with ground truth.
+
+Each sequence is ``frames`` consecutive renders (jittered with the Halton
+phases the game uses at 2x, at 60 or 30 frames a second) of one scene, and the
+supersampled ground truth of its last ``truth_frames`` frames. The first frames
+without truth warm up the network's history during training.
+
+Kept apart from the evaluation (``upcast eval upscalers``): that renders seed 0
+at game times 0 to 0.4 s (scene_cut: around its cut at 1 s); training uses
+seeds 1 and up and times from 1.5 s on, so no evaluated frame is trained on.
+The world itself (buildings, textures, the sign) is the same game, as it would
+be for a network trained per game.
+
+Generation is deterministic from the seed and cached as an .npz keyed by every
+parameter, so a rerun loads it instead of rendering again.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import sys
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+
+from server.frame import Size
+from server.render.renderer import Renderer
+from server.render.scenes import SCENE_NAMES
+
+TRAIN_TIME_RANGE = (1.5, 9.0)
+FRAME_STEPS = (1.0 / 60.0, 1.0 / 30.0)
+
+
+@dataclass(frozen=True)
+class DatasetSpec:
+    sequences: int = 96
+    frames: int = 5
+    truth_frames: int = 3
+    render_size: str = "640x360"
+    scale: int = 2
+    supersample: int = 3
+    seed: int = 0
+    scenes: tuple[str, ...] = SCENE_NAMES
+
+    def key(self) -> str:
+        text = json.dumps(asdict(self), sort_keys=True)
+        return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+    def check(self) -> None:
+        if self.sequences < 1:
+            raise ValueError(f"sequences must be >= 1, got {self.sequences}")
+        if not 1 <= self.truth_frames <= self.frames:
+            raise ValueError(
+                f"truth_frames must be in [1, frames={self.frames}], got {self.truth_frames}"
+            )
+        unknown = [s for s in self.scenes if s not in SCENE_NAMES]
+        if unknown or not self.scenes:
+            raise ValueError(f"unknown scenes {unknown}; choose from {', '.join(SCENE_NAMES)}")
+        Size.parse(self.render_size)
+
+
+@dataclass
+class Dataset:
+    """Arrays indexed [sequence, frame]; truth is for the last ``truth_frames`` frames."""
+
+    color: npt.NDArray[np.uint8]  # (S, F, h, w, 3)
+    depth: npt.NDArray[np.float16]  # (S, F, h, w)
+    motion: npt.NDArray[np.float16]  # (S, F, h, w, 2)
+    jitter: npt.NDArray[np.float32]  # (S, F, 2)
+    near_far: npt.NDArray[np.float32]  # (S, 2)
+    truth: npt.NDArray[np.uint8]  # (S, T, s h, s w, 3)
+
+    @property
+    def sequences(self) -> int:
+        return int(self.color.shape[0])
+
+    @property
+    def frames(self) -> int:
+        return int(self.color.shape[1])
+
+    @property
+    def first_truth(self) -> int:
+        return int(self.color.shape[1] - self.truth.shape[1])
+
+
+def _sequence_plan(spec: DatasetSpec) -> list[tuple[str, int, float, float, int]]:
+    """(scene, scene seed, start time, frame step, first frame index) per sequence."""
+    rng = np.random.default_rng(spec.seed)
+    plan = []
+    for i in range(spec.sequences):
+        scene = spec.scenes[i % len(spec.scenes)]
+        scene_seed = 1 + int(rng.integers(0, 1000))
+        t0 = float(rng.uniform(*TRAIN_TIME_RANGE))
+        dt = FRAME_STEPS[int(rng.integers(0, len(FRAME_STEPS)))]
+        first_index = 1 + int(rng.integers(0, 64))
+        plan.append((scene, scene_seed, t0, dt, first_index))
+    return plan
+
+
+def generate(spec: DatasetSpec, progress: bool = True) -> Dataset:
+    spec.check()
+    render = Size.parse(spec.render_size)
+    w, h = render
+    s, n, nt = spec.scale, spec.frames, spec.truth_frames
+    data = Dataset(
+        color=np.empty((spec.sequences, n, h, w, 3), np.uint8),
+        depth=np.empty((spec.sequences, n, h, w), np.float16),
+        motion=np.empty((spec.sequences, n, h, w, 2), np.float16),
+        jitter=np.empty((spec.sequences, n, 2), np.float32),
+        near_far=np.empty((spec.sequences, 2), np.float32),
+        truth=np.empty((spec.sequences, nt, h * s, w * s, 3), np.uint8),
+    )
+    display = Size(w * s, h * s)
+    started = time.monotonic()
+    for i, (scene, scene_seed, t0, dt, first) in enumerate(_sequence_plan(spec)):
+        renderer = Renderer(scene, render, seed=scene_seed, jitter=True, scale=float(s))
+        for f in range(n):
+            t = t0 + f * dt
+            frame = renderer.render(first + f, t, prev_t=t - dt)
+            data.color[i, f] = frame.color
+            data.depth[i, f] = frame.depth
+            data.motion[i, f] = frame.motion
+            data.jitter[i, f] = frame.meta.jitter
+            cam = frame.meta.camera
+            data.near_far[i] = (cam.near, cam.far)
+        for k in range(nt):
+            t = t0 + (n - nt + k) * dt
+            data.truth[i, k] = renderer.render_ground_truth(t, display, spec.supersample)
+        if progress:
+            elapsed = time.monotonic() - started
+            eta = elapsed / (i + 1) * (spec.sequences - i - 1)
+            print(
+                f"[data] sequence {i + 1}/{spec.sequences} ({scene}) "
+                f"{elapsed:.0f} s, eta {eta:.0f} s",
+                file=sys.stderr,
+                flush=True,
+            )
+    return data
+
+
+def load_or_generate(spec: DatasetSpec, data_dir: Path, progress: bool = True) -> Dataset:
+    """The dataset of ``spec`` from ``data_dir`` if cached there, else rendered and saved."""
+    path = data_dir / f"train-{spec.key()}.npz"
+    if path.is_file():
+        try:
+            with np.load(path) as z:
+                return Dataset(**{k: z[k] for k in Dataset.__dataclass_fields__})
+        except (OSError, ValueError, KeyError) as e:
+            print(f"[data] cached {path} unreadable ({e}); rendering again", file=sys.stderr)
+    data = generate(spec, progress)
+    data_dir.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp.npz")
+    np.savez(tmp, **{k: getattr(data, k) for k in Dataset.__dataclass_fields__})
+    tmp.replace(path)
+    return data

@@ -1,0 +1,167 @@
+"""The training loop: recurrent unrolls over random crops, L1 in sRGB, Adam.
+
+A step takes a batch of crops (the same window in every frame of a sequence,
+randomly mirrored) and a start frame: frames before the first one with ground
+truth run without gradients and only build history; from the start frame on,
+the network sees its own previous output warped by the motion vectors, as it
+will when upscaling. The start frame has no history, so the first frame after
+a cut or a reset is trained too. History is detached between frames.
+
+Deterministic from the seed on one machine: every random choice comes from
+generators seeded here, and torch's CPU kernels are deterministic for these ops.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from server.train.dataset import Dataset
+from upscalers.neural.features import FrameTensors, History, build_features
+from upscalers.neural.network import predict
+
+GRAD_CLIP = 1.0
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    steps: int = 1500
+    batch: int = 8
+    crop: int = 96  # render pixels
+    lr: float = 1e-3
+    final_lr: float = 5e-5
+    seed: int = 0
+    minutes: float | None = None  # stop early (and say so) past this wall time
+    log_every: int = 10
+
+
+@dataclass
+class TrainResult:
+    steps_done: int
+    seconds: float
+    final_loss: float
+    stopped_early: bool
+
+
+def _batch(
+    data: Dataset, rng: np.random.Generator, cfg: TrainConfig, scale: int
+) -> tuple[list[FrameTensors], list[torch.Tensor | None]]:
+    """Frame tensors per frame of the unroll and the matching truth (None: warm-up)."""
+    h, w = data.color.shape[2:4]
+    crop = min(cfg.crop, h, w)
+    seqs = rng.integers(0, data.sequences, cfg.batch)
+    ys = rng.integers(0, h - crop + 1, cfg.batch)
+    xs = rng.integers(0, w - crop + 1, cfg.batch)
+    flips = rng.random(cfg.batch) < 0.5
+    start = int(rng.integers(0, data.first_truth + 1))
+    frames: list[FrameTensors] = []
+    truths: list[torch.Tensor | None] = []
+    for f in range(start, data.frames):
+        col, dep, mot, jit, gts = [], [], [], [], []
+        for b in range(cfg.batch):
+            i, y, x = int(seqs[b]), int(ys[b]), int(xs[b])
+            c = data.color[i, f, y : y + crop, x : x + crop]
+            d = data.depth[i, f, y : y + crop, x : x + crop]
+            m = data.motion[i, f, y : y + crop, x : x + crop].astype(np.float32)
+            j = data.jitter[i, f].copy()
+            g = None
+            k = f - data.first_truth
+            if k >= 0:
+                g = data.truth[i, k, scale * y : scale * (y + crop), scale * x : scale * (x + crop)]
+            if flips[b]:
+                # Mirror x: sample offsets and motion change sign along x.
+                c, d, m = c[:, ::-1], d[:, ::-1], m[:, ::-1].copy()
+                m[..., 0] *= -1.0
+                j[0] = -j[0]
+                g = None if g is None else g[:, ::-1]
+            col.append(np.ascontiguousarray(c))
+            dep.append(np.ascontiguousarray(d, dtype=np.float32))
+            mot.append(np.ascontiguousarray(m))
+            jit.append(j)
+            if g is not None:
+                gts.append(np.ascontiguousarray(g))
+        color = torch.from_numpy(np.stack(col)).permute(0, 3, 1, 2).float().div_(255.0)
+        frames.append(
+            FrameTensors(
+                color=color,
+                depth=torch.from_numpy(np.stack(dep)).unsqueeze(1),
+                motion=torch.from_numpy(np.stack(mot)).permute(0, 3, 1, 2).contiguous(),
+                jitter=torch.from_numpy(np.stack(jit)),
+                near_far=torch.from_numpy(data.near_far[seqs]),
+            )
+        )
+        truths.append(
+            torch.from_numpy(np.stack(gts)).permute(0, 3, 1, 2).float().div_(255.0) if gts else None
+        )
+    return frames, truths
+
+
+def _lr_at(step: int, cfg: TrainConfig) -> float:
+    """Linear warm-up over the first 3 % of steps, then cosine decay to final_lr."""
+    warm = max(1, cfg.steps // 33)
+    if step < warm:
+        return cfg.lr * (step + 1) / warm
+    p = (step - warm) / max(1, cfg.steps - warm)
+    return cfg.final_lr + 0.5 * (cfg.lr - cfg.final_lr) * (1.0 + math.cos(math.pi * p))
+
+
+def train(
+    model: nn.Module, data: Dataset, cfg: TrainConfig, scale: int, progress: bool = True
+) -> TrainResult:
+    rng = np.random.default_rng(cfg.seed)
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    model.train()
+    started = time.monotonic()
+    recent: list[float] = []
+    step = 0
+    stopped_early = False
+    for step in range(cfg.steps):
+        if cfg.minutes is not None and time.monotonic() - started > 60.0 * cfg.minutes:
+            stopped_early = True
+            break
+        for group in opt.param_groups:
+            group["lr"] = _lr_at(step, cfg)
+        frames, truths = _batch(data, rng, cfg, scale)
+        history: History | None = None
+        opt.zero_grad(set_to_none=True)
+        losses = []
+        for ft, gt in zip(frames, truths, strict=True):
+            with torch.set_grad_enabled(gt is not None):
+                x, dfeat = build_features(ft, history, scale)
+                y = predict(model, x, scale)
+            if gt is not None:
+                losses.append(F.l1_loss(y, gt))
+            history = History(y.detach(), dfeat)
+        loss = torch.stack(losses).mean()
+        loss.backward()  # type: ignore[no-untyped-call]
+        # A recurrent unroll occasionally spikes (a bad history feeds the next frame):
+        # clipping keeps one such batch from undoing what was learnt.
+        torch.nn.utils.clip_grad_norm_(model.parameters(), GRAD_CLIP)
+        opt.step()
+        recent.append(float(loss.detach()))
+        recent = recent[-50:]
+        if progress and (step % cfg.log_every == 0 or step == cfg.steps - 1):
+            elapsed = time.monotonic() - started
+            eta = elapsed / (step + 1) * (cfg.steps - step - 1)
+            print(
+                f"[train] step {step + 1}/{cfg.steps} loss {np.mean(recent):.4f} "
+                f"lr {_lr_at(step, cfg):.2e} {elapsed:.0f} s, eta {eta:.0f} s",
+                file=sys.stderr,
+                flush=True,
+            )
+    else:
+        step = cfg.steps
+    model.eval()
+    return TrainResult(
+        steps_done=step,
+        seconds=time.monotonic() - started,
+        final_loss=float(np.mean(recent)) if recent else float("nan"),
+        stopped_early=stopped_early,
+    )

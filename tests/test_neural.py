@@ -1,0 +1,326 @@
+"""Neural upscalers: features, networks, shipped weights, history handling, training."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from server.frame import RenderFrame, Size
+from server.render.renderer import Renderer
+from upscalers import metrics, registry
+from upscalers.neural import conv_flops, load
+from upscalers.neural.features import (
+    bilinear_phases,
+    feature_channels,
+    warp_history,
+)
+from upscalers.neural.network import build_model, predict
+from upscalers.neural.upscaler import NeuralUpscaler, UNetUpscaler
+from upscalers.output import to_uint8
+
+NETWORKS = ("unet", "unetpp")
+
+
+@pytest.fixture(scope="module")
+def shipped() -> dict[str, NeuralUpscaler]:
+    torch.set_num_threads(2)
+    return {name: load(name, device="cpu") for name in NETWORKS}
+
+
+@pytest.fixture(scope="module")
+def sequence() -> tuple[list[RenderFrame], np.ndarray]:
+    """Six jittered frames of a moving scene at 320x180 and the 640x360 truth of the last."""
+    renderer = Renderer("slow_pan", Size(320, 180), seed=0, jitter=True, scale=2.0)
+    times = [i / 60.0 for i in range(6)]
+    frames = [renderer.render(i, t) for i, t in enumerate(times)]
+    frames = [dataclasses.replace(f, color=f.color.copy()) for f in frames]
+    truth = renderer.render_ground_truth(times[-1], Size(640, 360), 3)
+    return frames, truth
+
+
+def fresh(name: str) -> NeuralUpscaler:
+    return load(name, device="cpu")
+
+
+# -- features -------------------------------------------------------------------------
+
+
+def test_untrained_network_is_exactly_bilinear() -> None:
+    """The residual starts at zero, so the bilinear phases must equal F.interpolate."""
+    torch.manual_seed(0)
+    color = torch.rand(1, 3, 13, 17)
+    feats = torch.zeros(1, feature_channels(), 13, 17)
+    feats[:, :3] = color
+    for name in NETWORKS:
+        out = predict(build_model(name), feats, 2)
+        ref = F.interpolate(color, scale_factor=2.0, mode="bilinear", align_corners=False)
+        torch.testing.assert_close(out, ref.clamp(0, 1), atol=1e-6, rtol=0)
+    assert bilinear_phases(color, 2).shape == (1, 12, 13, 17)
+
+
+def test_jittered_base_samples_where_the_frame_sampled() -> None:
+    """With jitter j, render pixel i holds the scene at i + 0.5 + j: the base must equal
+    bilinear sampling at display centres shifted by -j (interior; edges are clamped)."""
+    torch.manual_seed(2)
+    color = torch.rand(2, 3, 9, 11)
+    jitter = torch.tensor([[0.3, -0.45], [-0.2, 0.1]])
+    out = F.pixel_shuffle(bilinear_phases(color, 2, jitter), 2)
+    for n in range(2):
+        x = (torch.arange(22) + 0.5) / 2 - jitter[n, 0]
+        y = (torch.arange(18) + 0.5) / 2 - jitter[n, 1]
+        grid = torch.stack(
+            ((x * 2 / 11 - 1).expand(18, 22), (y * 2 / 9 - 1)[:, None].expand(18, 22)), -1
+        )
+        ref = F.grid_sample(
+            color[n : n + 1], grid[None], padding_mode="border", align_corners=False
+        )
+        torch.testing.assert_close(out[n : n + 1, :, 1:-1, 1:-1], ref[..., 1:-1, 1:-1])
+    # Jitter really moves it: the unjittered base differs.
+    assert not torch.allclose(bilinear_phases(color, 2), bilinear_phases(color, 2, jitter))
+
+
+def test_warp_history_order_and_shift() -> None:
+    torch.manual_seed(1)
+    out = torch.rand(2, 3, 16, 20)
+    still = torch.zeros(2, 2, 8, 10)
+    torch.testing.assert_close(warp_history(out, still, 2), F.pixel_unshuffle(out, 2))
+    # Motion of +1 render pixel in x fetches the display image 2 pixels to the right.
+    moved = torch.zeros(2, 2, 8, 10)
+    moved[:, 0] = 1.0
+    got = F.pixel_shuffle(warp_history(out, moved, 2), 2)
+    torch.testing.assert_close(got[..., :-2], out[..., 2:])
+
+
+# -- networks and cache points --------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", NETWORKS)
+def test_cache_points_are_called_once_per_forward(name: str) -> None:
+    model = build_model(name)
+    cls = type(model)
+    assert cls.default_cache_config in cls.cache_configs
+    calls: dict[str, int] = {}
+    points = {p for cfg in cls.cache_configs.values() for p in cfg}
+    for p in points:
+        model.get_submodule(p).register_forward_hook(
+            lambda _m, _i, _o, p=p: calls.__setitem__(p, calls.get(p, 0) + 1)
+        )
+    with torch.no_grad():
+        model(torch.rand(1, feature_channels(), 16, 24))
+    assert calls == dict.fromkeys(points, 1)
+
+
+@pytest.mark.parametrize("name", NETWORKS)
+def test_conv_flops_add_up(name: str) -> None:
+    model = build_model(name)
+    flops = conv_flops(model, (1, feature_channels(), 64, 96))
+    children = [n for n, _ in model.named_children()]
+    assert flops[""] == sum(flops[c] for c in children) > 0
+    for cfg in type(model).cache_configs.values():
+        assert 0 < sum(flops[p] for p in cfg) < flops[""]
+    # One convolution by hand: the first one sees every input channel at full size.
+    first = next(m for m in model.modules() if isinstance(m, torch.nn.Conv2d))
+    first_name = next(n for n, m in model.named_modules() if m is first)
+    expected = 64 * 96 * first.out_channels * (2 * feature_channels() * 9 + 1)
+    assert flops[first_name] == expected
+
+
+def test_unet_levels_remove_less_as_they_go_deeper() -> None:
+    model = build_model("unet")
+    f = conv_flops(model, (1, feature_channels(), 360, 640))
+    level = [f[model.cache_configs[k][0]] for k in ("1", "2", "3")]
+    assert level[0] > level[1] > level[2] > 0
+    pp = build_model("unetpp")
+    g = conv_flops(pp, (1, feature_channels(), 360, 640))
+    removed = {k: sum(g[p] for p in v) for k, v in pp.cache_configs.items()}
+    assert removed["B"] > removed["A"] > 0
+
+
+# -- shipped weights ------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", NETWORKS)
+def test_shipped_weights_load_and_are_small(name: str, shipped: dict[str, NeuralUpscaler]) -> None:
+    up = shipped[name]
+    path = Path(__file__).resolve().parents[1] / "upscalers" / "neural" / "weights" / f"{name}.pt"
+    assert path.stat().st_size < 2_000_000
+    assert up.scale == 2 and up.temporal
+    assert all(torch.isfinite(p).all() for p in up.model.parameters())
+    # Trained: the output convolution is no longer the zero it starts from.
+    last = [m for m in up.model.modules() if isinstance(m, torch.nn.Conv2d)][-1]
+    assert last.weight.abs().sum() > 0
+    assert registry.is_temporal(name)
+    assert isinstance(registry.create(name, device="cpu"), NeuralUpscaler)
+
+
+@pytest.mark.parametrize("name", NETWORKS)
+def test_beats_bilinear_on_a_rendered_frame(
+    name: str, sequence: tuple[list[RenderFrame], np.ndarray]
+) -> None:
+    frames, truth = sequence
+    up = fresh(name)
+    for f in frames:
+        out = up.upscale(f, Size(640, 360))
+    assert out.shape == (3, 360, 640) and out.dtype == torch.float32
+    assert torch.isfinite(out).all()
+    ours = metrics.psnr(truth, to_uint8(out))
+    bilinear = metrics.psnr(
+        truth, to_uint8(registry.create("bilinear").upscale(frames[-1], Size(640, 360)))
+    )
+    assert ours > bilinear + 0.5, (ours, bilinear)
+
+
+def test_upscale_is_features_run_remember(sequence: tuple[list[RenderFrame], np.ndarray]) -> None:
+    frames, _ = sequence
+    a, b = fresh("unet"), fresh("unet")
+    display = Size(640, 360)
+    for f in frames[:3]:
+        x = b.features(f, display)
+        y = b.run(x)
+        b.remember(y)
+        assert torch.equal(a.upscale(f, display), y[0])
+
+
+def test_remember_without_features_is_refused() -> None:
+    with pytest.raises(RuntimeError, match="features"):
+        fresh("unet").remember(torch.zeros(1, 3, 4, 4))
+
+
+# -- hard cases -----------------------------------------------------------------------
+
+
+def _poisoned(frame: RenderFrame) -> RenderFrame:
+    depth = frame.depth.copy()
+    motion = frame.motion.copy()
+    depth[::7, ::5] = np.nan
+    depth[3, :] = np.inf
+    motion[::3, ::4, 0] = np.nan
+    motion[5, :, 1] = -np.inf
+    meta = dataclasses.replace(frame.meta, jitter=(float("nan"), float("inf")))
+    return dataclasses.replace(frame, depth=depth, motion=motion, meta=meta)
+
+
+@pytest.mark.parametrize("name", NETWORKS)
+def test_nan_and_inf_input_never_reach_output_or_history(
+    name: str, sequence: tuple[list[RenderFrame], np.ndarray]
+) -> None:
+    frames, _ = sequence
+    up = fresh(name)
+    display = Size(640, 360)
+    up.upscale(frames[0], display)
+    out = up.upscale(_poisoned(frames[1]), display)
+    assert torch.isfinite(out).all()
+    assert up._history is not None and torch.isfinite(up._history.output).all()
+    assert torch.isfinite(up.upscale(frames[2], display)).all()
+
+
+@pytest.mark.parametrize("name", NETWORKS)
+def test_odd_sizes(name: str) -> None:
+    renderer = Renderer("dolly", Size(161, 91), seed=0, jitter=True)
+    up = fresh(name)
+    for i in range(2):
+        out = up.upscale(renderer.render(i, i / 60.0), Size(322, 182))
+        assert out.shape == (3, 182, 322) and torch.isfinite(out).all()
+
+
+@pytest.mark.parametrize("display", [Size(480, 270), Size(960, 540), Size(300, 170)])
+def test_other_scales_resample_the_2x_output(
+    display: Size, sequence: tuple[list[RenderFrame], np.ndarray]
+) -> None:
+    frames, _ = sequence
+    up = fresh("unet")
+    for f in frames[:2]:
+        out = up.upscale(f, display)
+        assert out.shape == (3, display.height, display.width) and torch.isfinite(out).all()
+
+
+def test_first_frame_and_reset_equal_a_fresh_start(
+    sequence: tuple[list[RenderFrame], np.ndarray],
+) -> None:
+    frames, _ = sequence
+    display = Size(640, 360)
+    first = fresh("unet").upscale(frames[3], display)
+    up = fresh("unet")
+    for f in frames[:3]:
+        up.upscale(f, display)
+    with_history = up.upscale(frames[3], display)
+    assert not torch.equal(with_history, first)  # history is really used
+    up.reset()
+    assert torch.equal(up.upscale(frames[3], display), first)
+
+
+def test_resolution_change_drops_history(sequence: tuple[list[RenderFrame], np.ndarray]) -> None:
+    frames, _ = sequence
+    small = Renderer("slow_pan", Size(160, 90), seed=0, jitter=True).render(1, 1 / 60.0)
+    up = fresh("unet")
+    for f in frames[:3]:
+        up.upscale(f, Size(640, 360))
+    changed = up.upscale(small, Size(320, 180))
+    assert torch.equal(changed, fresh("unet").upscale(small, Size(320, 180)))
+    # Same render size, another display size: also a new start.
+    up.upscale(frames[0], Size(640, 360))
+    other = up.upscale(frames[1], Size(480, 270))
+    assert torch.equal(other, fresh("unet").upscale(frames[1], Size(480, 270)))
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+@pytest.mark.parametrize("name", NETWORKS)
+def test_float16_cuda_matches_cpu(
+    name: str, sequence: tuple[list[RenderFrame], np.ndarray]
+) -> None:
+    """float16 on CUDA against float32 on the CPU over a run of frames (history included):
+    mean absolute difference below 1/255 and 99.9 % of pixels within 4/255."""
+    frames, _ = sequence
+    cpu = load(name, device="cpu")
+    gpu = load(name, device="cuda", dtype=torch.float16)
+    for f in frames:
+        a = cpu.upscale(f, Size(640, 360))
+        b = gpu.upscale(f, Size(640, 360)).float().cpu()
+    diff = (a - b).abs()
+    assert float(diff.mean()) < 1.0 / 255.0
+    assert float((diff > 4.0 / 255.0).float().mean()) < 1e-3
+
+
+# -- training -------------------------------------------------------------------------
+
+
+def _train(tmp: Path, out: str, seed: int = 0) -> dict[str, torch.Tensor]:
+    from server.cli import main
+
+    args = ["train", "--model", "unet", "--steps", "2", "--sequences", "1",
+            "--render-size", "32x24", "--crop", "16", "--batch", "2", "--seed", str(seed),
+            "--data-dir", str(tmp / "data"), "--out", str(tmp / out)]  # fmt: skip
+    assert main(args) == 0
+    ckpt = torch.load(tmp / out, weights_only=True)
+    return dict(ckpt["state_dict"])
+
+
+def test_train_end_to_end_is_reproducible(tmp_path: Path) -> None:
+    a = _train(tmp_path, "a.pt")
+    b = _train(tmp_path, "b.pt")  # the second run loads the cached dataset
+    assert len(list((tmp_path / "data").glob("*.npz"))) == 1
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    c = _train(tmp_path, "c.pt", seed=1)
+    assert any(not torch.equal(a[k], c[k]) for k in a)
+    up = UNetUpscaler(device="cpu", weights=tmp_path / "a.pt")
+    frame = Renderer("static", Size(32, 24), seed=0).render(0, 0.0)
+    assert torch.isfinite(up.upscale(frame, Size(64, 48))).all()
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [["--model", "vgg"], ["--model", "unet", "--steps", "0"], ["--model", "unet", "--lr", "x"],
+     ["--model", "unet", "--render-size", "64"], ["--model", "unet", "--crop", "999"]],
+)  # fmt: skip
+def test_train_refuses_bad_arguments(bad: list[str], tmp_path: Path) -> None:
+    from server.cli import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(["train", *bad, "--data-dir", str(tmp_path), "--out", str(tmp_path / "x.pt")])
+    assert exc.value.code != 0
+    assert not (tmp_path / "x.pt").exists()
