@@ -4,7 +4,7 @@ Per frame: build the network input, ask the policy "refresh now?", run the
 network in refresh or reuse mode, and hand the output back to the upscaler as
 its history. What the wrapped upscaler provides (``NeuralUpscalerLike``) is the
 contract of upscalers/neural: ``model``, ``features``, ``run``, ``remember``,
-``reset``.
+``reset``, and optionally ``to_display`` (network image -> display size).
 
 Safety rules it adds to any policy's answer:
 
@@ -128,6 +128,10 @@ class CachedUpscaler:
             y = self._reuse(x)
         self.upscaler.remember(y)
         self._count_frame()
+        to_display = getattr(self.upscaler, "to_display", None)
+        if callable(to_display):  # NeuralUpscaler: the network's 2x image -> display size
+            out: torch.Tensor = to_display(y, display_size)
+            return out
         return y[0]
 
     def _run_nonfinite(self, x: torch.Tensor) -> torch.Tensor:
