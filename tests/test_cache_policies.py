@@ -25,8 +25,10 @@ def _signals(
     ready: bool = True,
     motion: np.ndarray | None = None,
 ) -> FrameSignals:
+    """Signals whose network input and colour are both ``x`` (``ref``: colour at refresh)."""
     return FrameSignals(
         inputs=x,
+        image=x,
         reference=ref,
         since_refresh=since,
         scene_cut=cut,
@@ -48,6 +50,11 @@ def test_smape_values_and_all_zero_frames() -> None:
     assert smape(big, big * 0.5) == pytest.approx(2 * 30000 / 90000, rel=1e-3)
     with pytest.raises(ValueError, match="different shapes"):
         smape(one, torch.ones(1, 4, 8, 9))
+    # uint8 frame colour as the policies get it: no wrap-around of 0 - 255
+    black, white = np.zeros((4, 4, 3), np.uint8), np.full((4, 4, 3), 255, np.uint8)
+    assert smape(black, black) == 0.0
+    assert smape(white, black) == pytest.approx(2.0)
+    assert smape(black, white) == pytest.approx(2.0)
 
 
 def test_must_refresh_rules() -> None:

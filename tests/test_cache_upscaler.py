@@ -201,3 +201,14 @@ def test_float16_on_cuda() -> None:
     kept = never.cache.branches["body.inner"].kept
     assert kept is not None and kept.dtype == torch.float16 and kept.is_cuda
     assert never.stats.cache_bytes == kept.numel() * 2
+
+
+def test_the_frame_delta_reference_is_a_copy_of_the_refresh_colour() -> None:
+    _, cached = _pair(policy="delta@0.01", feedback=False)
+    frame = make_frame(0, SIZE, shift=0)
+    cached.upscale(frame, DISPLAY)
+    kept = frame.color.copy()
+    frame.color[:] = 0  # the ring slot is overwritten by a later frame
+    cached.upscale(make_frame(1, SIZE, shift=0), DISPLAY)  # same picture as frame 0
+    assert cached.last_action == "cached"
+    assert cached.stats.reference_bytes == kept.nbytes

@@ -21,6 +21,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Protocol
 
+import numpy as np
+import numpy.typing as npt
 import torch
 from torch import nn
 
@@ -55,7 +57,7 @@ class CacheStats:
     invalidations: int = 0  # resolution/dtype/device changes and resets
     cache_bytes: int = 0  # what the layer cache holds now
     peak_cache_bytes: int = 0
-    reference_bytes: int = 0  # the input kept for the frame delta
+    reference_bytes: int = 0  # the colour kept for the frame delta
 
     @property
     def cached_share(self) -> float:
@@ -78,7 +80,7 @@ class CachedUpscaler:
         self.policy = make_policy(policy) if isinstance(policy, str) else policy
         self.cache = LayerCache(upscaler.model, config)
         self.stats = CacheStats()
-        self._reference: torch.Tensor | None = None
+        self._reference: npt.NDArray[np.uint8] | None = None
         self._since_refresh = 0
         self._geometry: tuple[Any, ...] | None = None
         # What the last frame did: "refresh", "cached", "forced" or "nonfinite".
@@ -113,6 +115,7 @@ class CachedUpscaler:
             self._geometry = geometry
         signals = FrameSignals(
             inputs=x,
+            image=frame.color,
             reference=self._reference,
             since_refresh=self._since_refresh,
             scene_cut=bool(frame.meta.flags & FrameFlags.RESET),
@@ -123,9 +126,9 @@ class CachedUpscaler:
         if not signals.finite:
             y = self._run_nonfinite(x)
         elif refresh:
-            y = self._refresh(x, signals, forced=signals.must_refresh)
+            y = self._refresh(x, frame, signals, forced=signals.must_refresh)
         else:
-            y = self._reuse(x)
+            y = self._reuse(x, frame)
         self.upscaler.remember(y)
         self._count_frame()
         to_display = getattr(self.upscaler, "to_display", None)
@@ -145,7 +148,9 @@ class CachedUpscaler:
         self.last_action = "nonfinite"
         return y
 
-    def _refresh(self, x: torch.Tensor, signals: FrameSignals, forced: bool) -> torch.Tensor:
+    def _refresh(
+        self, x: torch.Tensor, frame: RenderFrame, signals: FrameSignals, forced: bool
+    ) -> torch.Tensor:
         stale: torch.Tensor | None = None
         if self.policy.wants_audit and not forced:
             with self.cache.using(CacheMode.REUSE):
@@ -157,13 +162,13 @@ class CachedUpscaler:
         if stale is not None:
             self.stats.audits += 1
             self.policy.observe_audit(signals, psnr_db(y, stale))
-        self._kept_reference(x)
+        self._kept_reference(frame)
         self.stats.refreshes += 1
         self.stats.forced += int(forced)
         self.last_action = "forced" if forced else "refresh"
         return y
 
-    def _reuse(self, x: torch.Tensor) -> torch.Tensor:
+    def _reuse(self, x: torch.Tensor, frame: RenderFrame) -> torch.Tensor:
         with self.cache.using(CacheMode.REUSE):
             y = self.upscaler.run(x)
         if self.cache.last_forward_reused:
@@ -171,15 +176,15 @@ class CachedUpscaler:
             self.stats.cached += 1
             self.last_action = "cached"
         else:  # the cache fell back to running the branches: that was a refresh
-            self._kept_reference(x)
+            self._kept_reference(frame)
             self.stats.refreshes += 1
             self.stats.forced += 1
             self.last_action = "forced"
         return y
 
-    def _kept_reference(self, x: torch.Tensor) -> None:
-        # A copy: the upscaler may build the next input in the same buffer.
-        self._reference = x.detach().clone()
+    def _kept_reference(self, frame: RenderFrame) -> None:
+        # A copy: the frame's planes are views of a ring slot that will be reused.
+        self._reference = frame.color.copy()
         self._since_refresh = 1
 
     def _count_frame(self) -> None:
@@ -188,4 +193,4 @@ class CachedUpscaler:
         s.cache_bytes = self.cache.nbytes
         s.peak_cache_bytes = max(s.peak_cache_bytes, s.cache_bytes)
         ref = self._reference
-        s.reference_bytes = 0 if ref is None else ref.numel() * ref.element_size()
+        s.reference_bytes = 0 if ref is None else ref.nbytes

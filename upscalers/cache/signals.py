@@ -1,6 +1,6 @@
 """What a cache policy sees of a frame, and the frame-delta measure (SMAPE).
 
-The costly figures (SMAPE over the network input, mean motion) are computed on
+The costly figures (SMAPE, mean motion, the finiteness scan) are computed on
 first use, so a policy that does not look at them does not pay for them.
 """
 
@@ -12,22 +12,28 @@ import numpy as np
 import numpy.typing as npt
 import torch
 
+Image = torch.Tensor | npt.NDArray[np.generic]
 
-def smape(current: torch.Tensor, reference: torch.Tensor) -> float:
+
+def smape(current: Image, reference: Image) -> float:
     """ReFrame's frame delta: 2 mean|x - x_c| / mean(|x| + |x_c|), in [0, 2].
 
-    Two all-zero tensors have changed by nothing: 0, not 0/0. Computed in float32
-    so float16 inputs neither overflow nor lose the small differences."""
-    if current.shape != reference.shape:
+    Two all-zero images have changed by nothing: 0, not 0/0. Computed in float32
+    (tensors or arrays, uint8 or float16 alike) so nothing overflows or rounds
+    away the small differences."""
+    if tuple(current.shape) != tuple(reference.shape):
         raise ValueError(
             f"SMAPE of different shapes {tuple(current.shape)} and {tuple(reference.shape)}"
         )
-    x = current.float()
-    r = reference.float()
-    den = float((x.abs() + r.abs()).mean())
-    if den == 0.0:
-        return 0.0
-    return 2.0 * float((x - r).abs().mean()) / den
+    if isinstance(current, np.ndarray) and isinstance(reference, np.ndarray):
+        xa = current.astype(np.float32, copy=False)
+        ra = reference.astype(np.float32, copy=False)
+        den = float(np.mean(np.abs(xa) + np.abs(ra)))
+        return 0.0 if den == 0.0 else 2.0 * float(np.mean(np.abs(xa - ra))) / den
+    x = torch.as_tensor(current).float()
+    r = torch.as_tensor(reference).float()
+    den_t = float((x.abs() + r.abs()).mean())
+    return 0.0 if den_t == 0.0 else 2.0 * float((x - r).abs().mean()) / den_t
 
 
 def mean_motion_px(motion: npt.NDArray[np.float32]) -> float:
@@ -41,22 +47,32 @@ def mean_motion_px(motion: npt.NDArray[np.float32]) -> float:
 class FrameSignals:
     """One frame as a policy sees it.
 
-    ``since_refresh`` counts frames since the last refresh (1 on the frame right
-    after it). ``reference`` is the network input at the last refresh (None when
-    there is none). ``cache_ready`` is whether the layer cache holds outputs that
-    fit this frame (False on the first frame and after a resolution change)."""
+    ``image`` is the frame's render-size colour (the "input image" whose SMAPE
+    ReFrame thresholds) and ``reference`` the colour at the last refresh (None when
+    there is none). The frame delta is taken on the colour, not on the whole
+    network input: that input also carries the jitter offsets as constant planes,
+    which change every frame by up to a pixel whatever the scene does, and they
+    dominate its SMAPE (0.08 to 0.22 between frames of a still scene and of a fast
+    yaw alike, measured on the U-Net's 22 input channels), so it would measure the
+    Halton phase instead of the content. ``inputs`` is the network input, checked
+    for non-finite values. ``since_refresh`` counts frames since the last refresh
+    (1 on the frame right after it). ``cache_ready`` is whether the layer cache
+    holds outputs that fit this frame (False on the first frame and after a
+    resolution change)."""
 
     def __init__(
         self,
         *,
         inputs: torch.Tensor,
-        reference: torch.Tensor | None,
+        image: Image,
+        reference: Image | None,
         since_refresh: int,
         scene_cut: bool,
         cache_ready: bool,
         motion: npt.NDArray[np.float32] | None = None,
     ) -> None:
         self.inputs = inputs
+        self.image = image
         self.reference = reference
         self.since_refresh = since_refresh
         self.scene_cut = scene_cut
@@ -73,21 +89,21 @@ class FrameSignals:
     @property
     def must_refresh(self) -> bool:
         """The rules no policy may overrule: first frame or cold cache, scene cut,
-        non-finite input, nothing (or nothing of this shape) to compare against."""
+        non-finite input, nothing (or nothing of this size) to compare against."""
         return (
             not self.cache_ready
             or self.scene_cut
             or self.reference is None
-            or self.reference.shape != self.inputs.shape
+            or tuple(self.reference.shape) != tuple(self.image.shape)
             or not self.finite
         )
 
     @cached_property
     def smape(self) -> float:
-        """SMAPE of this frame's input against the input at the last refresh."""
-        if self.reference is None:
+        """SMAPE of this frame's colour against the colour at the last refresh."""
+        if self.reference is None or tuple(self.reference.shape) != tuple(self.image.shape):
             return float("inf")
-        return smape(self.inputs, self.reference)
+        return smape(self.image, self.reference)
 
     @cached_property
     def mean_motion_px(self) -> float:
