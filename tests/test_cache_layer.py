@@ -137,13 +137,31 @@ def test_in_place_change_of_a_reused_tensor_is_detected() -> None:
     model = Mutating().eval()
     x = _input()
     with LayerCache(model) as cache, torch.no_grad():
+        first = model(x)  # refresh; the parent then scribbles on the branch output
+        cache.mode = CacheMode.REUSE
+        second = model(x)  # what was kept changed after it was kept: recomputed
+        assert not cache.last_forward_reused
+        assert torch.equal(first, second)
+        model(x)
+        assert not cache.last_forward_reused
+
+
+def test_in_place_change_under_inference_mode_cannot_reach_the_kept_copy() -> None:
+    class Mutating(ToyUNet):
+        def forward(self, x: torch.Tensor) -> torch.Tensor:
+            h = self.body.enc(self.head(x))
+            inner = self.body.inner(h)
+            out = self.tail(self.body.dec(torch.cat([h, inner], dim=1)))
+            inner.mul_(0.0)  # after use: only what is kept could suffer
+            return out
+
+    model = Mutating().eval()
+    x = _input()
+    with LayerCache(model) as cache, torch.inference_mode():
         first = model(x)
         cache.mode = CacheMode.REUSE
-        second = model(x)  # reuses, and the parent scribbles on the kept tensor
+        assert torch.equal(model(x), first)  # reused a copy the parent never saw
         assert cache.last_forward_reused
-        assert torch.equal(first, second)
-        model(x)  # the kept tensor changed since it was kept: recomputed, not reused
-        assert not cache.last_forward_reused
 
 
 def test_invalidate_and_restore_are_idempotent() -> None:

@@ -186,7 +186,7 @@ def run_scene(
     display: Size,
 ) -> tuple[list[CaseRun], list[ReferenceRun]]:
     """All cases and their uncached references on one scene, interleaved per frame."""
-    from server.frame import Size
+    from server.frame import FrameFlags, Size
     from server.render.renderer import Renderer, RenderTargets
     from upscalers import metrics
     from upscalers.cache.cached_upscaler import CachedUpscaler
@@ -212,9 +212,12 @@ def run_scene(
     for i, frame in enumerate(frames):
         k = i % len(jobs)  # rotate: no run always goes first (cold caches) or last
         images: dict[int, U8] = {}
+        cut = bool(frame.meta.flags & FrameFlags.RESET)
         for job in jobs[k:] + jobs[:k]:
-            t0 = time.perf_counter_ns()
             up = job.upscaler
+            if cut:  # what UpscalerHost does in the worker: history means nothing now
+                up.reset()
+            t0 = time.perf_counter_ns()
             image = up.upscale(frame, display)
             ms = (time.perf_counter_ns() - t0) / 1e6
             job.times_ms.append(ms)
@@ -393,7 +396,12 @@ def run(args: argparse.Namespace, load: LoadNetwork | None = None) -> int:
         scene_cases = [c for c in cases if c.group != "ablation" or scene in ablation_scenes]
         runs, refs = run_scene(scene, scene_cases, load, args, display)
         for r in runs:
-            report.add_case(**summarize(scene, r, flops))
+            case = report.add_case(**summarize(scene, r, flops))
+            _progress(
+                f"  {case['case']:14} skipped {case['cached_frames']:3d}/{case['frames']}  "
+                f"speedup {case['speedup']:.2f}  PSNR {case['psnr_db']:.2f} "
+                f"(worst {case['worst_psnr_db']:.2f})  FLIP {_fmt_opt(case['flip'])}"
+            )
         for ref in refs:
             report.add_case(
                 f"{scene}/{ref.network}_uncached",
@@ -437,6 +445,10 @@ def run(args: argparse.Namespace, load: LoadNetwork | None = None) -> int:
         print(f"plot written to {args.plot}")
     print(f"report written to {args.json}, tables to {tables_path}")
     return 0
+
+
+def _fmt_opt(value: float | None) -> str:
+    return "-" if value is None else f"{value:.4f}"
 
 
 def _loadavg() -> list[float] | None:

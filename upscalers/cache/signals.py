@@ -25,6 +25,15 @@ def smape(current: Image, reference: Image) -> float:
         raise ValueError(
             f"SMAPE of different shapes {tuple(current.shape)} and {tuple(reference.shape)}"
         )
+    if (
+        isinstance(current, np.ndarray)
+        and isinstance(reference, np.ndarray)
+        and current.dtype == reference.dtype == np.uint8
+    ):
+        # Frame colour: exact integer sums, no float copies (about 3x faster).
+        diff = np.abs(current.astype(np.int16) - reference.astype(np.int16))
+        den_u = int(current.sum(dtype=np.int64)) + int(reference.sum(dtype=np.int64))
+        return 0.0 if den_u == 0 else 2.0 * int(diff.sum(dtype=np.int64)) / den_u
     if isinstance(current, np.ndarray) and isinstance(reference, np.ndarray):
         xa = current.astype(np.float32, copy=False)
         ra = reference.astype(np.float32, copy=False)
@@ -81,9 +90,14 @@ class FrameSignals:
 
     @cached_property
     def finite(self) -> bool:
-        ok = bool(torch.isfinite(self.inputs).all())
+        from upscalers.cache.layer_cache import all_finite
+
+        ok = all_finite(self.inputs)
         if ok and self._motion is not None:
-            ok = bool(np.isfinite(self._motion).all())
+            # A sum carries NaN/Inf through; the exact scan only when it is not finite.
+            ok = bool(np.isfinite(self._motion.sum(dtype=np.float64))) or bool(
+                np.isfinite(self._motion).all()
+            )
         return ok
 
     @property

@@ -7,7 +7,13 @@ from collections.abc import Callable
 
 from upscalers.cache.policies.base import CachePolicy
 from upscalers.cache.policies.budget import BudgetPolicy
-from upscalers.cache.policies.delta import DELTA_H_TAU, DELTA_L_TAU, DeltaPolicy
+from upscalers.cache.policies.delta import (
+    DELTA_H_TAU,
+    DELTA_L_TAU,
+    PAPER_DELTA_H_TAU,
+    PAPER_DELTA_L_TAU,
+    DeltaPolicy,
+)
 from upscalers.cache.policies.motion import MotionPolicy
 from upscalers.cache.policies.schedule import EveryNPolicy, NonUniformPolicy
 
@@ -18,6 +24,9 @@ _NAMED: dict[str, Callable[[], CachePolicy]] = {
     "deepcache": NonUniformPolicy,
     "delta_h": lambda: DeltaPolicy(DELTA_H_TAU, "delta_h"),
     "delta_l": lambda: DeltaPolicy(DELTA_L_TAU, "delta_l"),
+    # The paper's own thresholds, for comparison (see delta.py for why they differ).
+    "delta_h_paper": lambda: DeltaPolicy(PAPER_DELTA_H_TAU, "delta_h_paper"),
+    "delta_l_paper": lambda: DeltaPolicy(PAPER_DELTA_L_TAU, "delta_l_paper"),
     "motion": MotionPolicy,
     "budget": BudgetPolicy,
 }
