@@ -44,7 +44,7 @@ if TYPE_CHECKING:
     U8 = npt.NDArray[np.uint8]
 
 MAIN_POLICIES = "delta_h,delta_l,every_2,every_5,deepcache,motion,budget"
-SWEEP = "delta@0.01,delta@0.02,delta@0.03,delta@0.05,delta@0.08,delta@0.12"
+SWEEP = "delta@0.03,delta@0.04,delta@0.06,delta@0.12"  # delta_h 0.05, delta_l 0.08 join them
 ABLATION = "unet:2,unet:3,unetpp:A,unetpp:B"
 ABLATION_SCENES = "slow_pan,fast_yaw,default"
 ABLATION_POLICY = "delta_l"
@@ -59,7 +59,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--tables", type=Path, default=None, help="Markdown tables (default: JSON path, .md)"
     )
     parser.add_argument("--scenes", default="all", help="comma-separated scene names, or all")
-    parser.add_argument("--frames", type=int, default=30, help="frames per scene")
+    parser.add_argument("--frames", type=int, default=24, help="frames per scene")
     parser.add_argument("--display-size", default="1280x720", help="render size is half")
     parser.add_argument("--policies", default=MAIN_POLICIES, help="cache level 1 policies")
     parser.add_argument(
