@@ -15,6 +15,7 @@ BENCHMARKS: dict[str, str] = {
     "latency": "render_end -> client_present per stage, real stack + headless Chromium",
     "serve": "upcast serve with N sessions: fps each holds, before and after a worker is killed",
     "compile_start": "upscaler compile=True at a worker start: inductor cache cold and warm",
+    "reframe": "layer caching on the neural upscaler: policies, levels, speedup against FLIP",
 }
 
 

@@ -1,0 +1,214 @@
+"""CachedUpscaler around a NeuralUpscaler-like toy: the hard cases of issue 5."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from torch import nn
+
+from server.frame import FrameFlags, RenderFrame, Size
+from tests.cache_toys import ToyNested, ToyNeuralUpscaler, ToyUNet, display_of, make_frame
+from upscalers.cache.cached_upscaler import CachedUpscaler
+from upscalers.cache.layer_cache import CachedBranch
+from upscalers.cache.policies import CachePolicy, make_policy
+from upscalers.cache.signals import FrameSignals
+
+SIZE = Size(32, 24)
+DISPLAY = display_of(SIZE)
+
+
+class Never(CachePolicy):
+    """Reuses whenever allowed: shows what the forced-refresh rules do on their own."""
+
+    name = "never"
+
+    def _refresh_now(self, signals: FrameSignals) -> bool:
+        return False
+
+
+def _pair(
+    arch: type[nn.Module] = ToyUNet,
+    policy: CachePolicy | str = "every_1",
+    config: str | None = None,
+    *,
+    feedback: bool = True,
+) -> tuple[ToyNeuralUpscaler, CachedUpscaler]:
+    """An uncached upscaler and a cached one with the same weights."""
+    plain = ToyNeuralUpscaler(arch().eval(), feedback=feedback)
+    cached = CachedUpscaler(ToyNeuralUpscaler(arch().eval(), feedback=feedback), policy, config)
+    return plain, cached
+
+
+def _same(a: torch.Tensor, b: torch.Tensor) -> bool:
+    """Bit-identical, NaN where NaN."""
+    return bool(torch.equal(a.isnan(), b.isnan()) and torch.equal(a.nan_to_num(), b.nan_to_num()))
+
+
+def _frames(n: int, shift: int = 1) -> list[RenderFrame]:
+    return [make_frame(i, SIZE, shift=shift) for i in range(n)]
+
+
+@pytest.mark.parametrize(("arch", "config"), [(ToyUNet, "1"), (ToyUNet, "3"), (ToyNested, "A")])
+def test_refresh_every_frame_is_bit_exact_with_the_uncached_upscaler(
+    arch: type[nn.Module], config: str
+) -> None:
+    plain, cached = _pair(arch, "every_1", config)
+    for frame in _frames(6):
+        assert torch.equal(cached.upscale(frame, DISPLAY), plain.upscale(frame, DISPLAY))
+    assert cached.stats.cached == 0 and cached.stats.refreshes == 6
+
+
+@pytest.mark.parametrize(
+    "name", ["every_2", "every_5", "deepcache", "delta_h", "delta_l", "motion", "budget"]
+)
+def test_first_frame_is_always_full(name: str) -> None:
+    plain, cached = _pair(policy=name)
+    frame = make_frame(0, SIZE)
+    assert torch.equal(cached.upscale(frame, DISPLAY), plain.upscale(frame, DISPLAY))
+    assert cached.last_action == "forced"
+
+
+def test_cached_frames_skip_the_deep_branch_and_stay_close() -> None:
+    plain, cached = _pair(policy=Never())
+    errors = []
+    for frame in _frames(5, shift=0):
+        a, b = cached.upscale(frame, DISPLAY), plain.upscale(frame, DISPLAY)
+        errors.append(float((a - b).abs().max()))
+    # A still scene: only the fed-back previous output changes the input, a little.
+    assert cached.stats.cached == 4 and errors[0] == 0.0 and max(errors) < 1e-3
+    for frame in _frames(5, shift=3)[1:]:
+        cached.upscale(frame, DISPLAY)
+        plain.upscale(frame, DISPLAY)
+    assert cached.stats.cached == 8
+    assert cached.stats.cache_bytes > 0 and cached.stats.reference_bytes > 0
+
+
+ADAPTIVE = ["delta_h", "delta_l", "motion", "budget", "delta@0.5", "motion@100", "budget@10"]
+
+
+@pytest.mark.parametrize("name", ADAPTIVE)
+def test_scene_cut_forces_a_refresh_on_the_very_next_frame(name: str) -> None:
+    plain, cached = _pair(policy=name, feedback=False)
+    for frame in _frames(4, shift=0):  # still frames: cached after the first
+        cached.upscale(frame, DISPLAY)
+        plain.upscale(frame, DISPLAY)
+    assert cached.last_action == "cached"
+    # The cut: a different picture whose input delta alone might not trigger.
+    cut = make_frame(4, SIZE, shift=0, flags=FrameFlags.RESET, seed=7)
+    out = cached.upscale(cut, DISPLAY)
+    assert cached.last_action == "forced"
+    assert torch.equal(out, plain.upscale(cut, DISPLAY))
+    after = make_frame(5, SIZE, shift=0, seed=7)
+    cached.upscale(after, DISPLAY)
+    assert cached.last_action == "cached"
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])
+def test_non_finite_input_refreshes_and_never_reaches_the_cache(bad: float) -> None:
+    plain, cached = _pair(policy=Never(), feedback=False)
+    frames = _frames(6)
+    for frame in frames[:3]:
+        cached.upscale(frame, DISPLAY)
+        plain.upscale(frame, DISPLAY)
+    poisoned = make_frame(3, SIZE)
+    poisoned.depth[5:9, 5:9] = bad
+    out = cached.upscale(poisoned, DISPLAY)
+    assert cached.last_action == "nonfinite"
+    assert _same(out, plain.upscale(poisoned, DISPLAY))  # the full network ran
+    assert cached.stats.cache_bytes == 0 and cached.stats.reference_bytes == 0
+    for branch in cached.cache.branches.values():
+        assert branch.kept is None
+    # The next (clean) frame cannot reuse anything: a forced refresh, finite cache.
+    cached.upscale(frames[4], DISPLAY)
+    assert cached.last_action == "forced"
+    for branch in cached.cache.branches.values():
+        assert branch.kept is not None and bool(torch.isfinite(branch.kept).all())
+    poisoned_motion = make_frame(5, SIZE)
+    poisoned_motion.motion[0, 0, 1] = bad
+    cached.upscale(poisoned_motion, DISPLAY)
+    assert cached.last_action == "nonfinite"
+
+
+def test_resolution_change_invalidates_the_cache() -> None:
+    plain, cached = _pair(policy=Never(), feedback=False)
+    for frame in _frames(3, shift=0):
+        cached.upscale(frame, DISPLAY)
+        plain.upscale(frame, DISPLAY)
+    big = Size(48, 36)
+    invalidations = cached.stats.invalidations
+    frame = make_frame(3, big, shift=0)
+    out = cached.upscale(frame, display_of(big))
+    assert cached.last_action == "forced"
+    assert cached.stats.invalidations == invalidations + 1
+    assert torch.equal(out, plain.upscale(frame, display_of(big)))
+    kept = cached.cache.branches["body.inner"].kept
+    assert kept is not None and kept.shape[-2:] == (36, 48)
+    # Only the display size changes: also a new geometry, also a refresh.
+    cached.upscale(make_frame(4, big, shift=0), Size(96, 72))
+    assert cached.last_action == "cached"
+    cached.upscale(make_frame(5, big, shift=0), Size(100, 75))
+    assert cached.last_action == "forced"
+
+
+def test_budget_policy_audits_its_own_refreshes() -> None:
+    policy = make_policy("budget@150")  # a budget no stale output meets: tau must fall
+    _, cached = _pair(policy=policy)
+    start = policy.tau  # type: ignore[attr-defined]
+    for frame in _frames(12, shift=2):
+        cached.upscale(frame, DISPLAY)
+    assert cached.stats.audits >= 1
+    assert policy.tau < start  # type: ignore[attr-defined]
+
+
+def test_close_restores_the_network() -> None:
+    model = ToyUNet().eval()
+    inner = model.body.inner
+    cached = CachedUpscaler(ToyNeuralUpscaler(model), "delta_l")
+    assert isinstance(model.body.inner, CachedBranch)
+    cached.close()
+    assert model.body.inner is inner
+
+
+def test_reset_forgets_the_cache_but_not_what_the_policy_learned() -> None:
+    policy = make_policy("budget@150")
+    _, cached = _pair(policy=policy)
+    for frame in _frames(8, shift=2):
+        cached.upscale(frame, DISPLAY)
+    tau = policy.tau  # type: ignore[attr-defined]
+    cached.reset()
+    assert not cached.cache.warm
+    cached.upscale(make_frame(9, SIZE), DISPLAY)
+    assert cached.last_action == "forced"
+    assert policy.tau == tau  # type: ignore[attr-defined]
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_float16_on_cuda() -> None:
+    model = ToyUNet().eval().cuda().half()
+    plain = ToyNeuralUpscaler(ToyUNet().eval().cuda().half(), dtype=torch.float16)
+    cached = CachedUpscaler(ToyNeuralUpscaler(model, dtype=torch.float16), "every_1")
+    for frame in _frames(3):
+        a, b = cached.upscale(frame, DISPLAY), plain.upscale(frame, DISPLAY)
+        assert a.dtype == torch.float16 and a.is_cuda
+        assert torch.equal(a, b)
+    never = CachedUpscaler(
+        ToyNeuralUpscaler(ToyUNet().eval().cuda().half(), dtype=torch.float16), Never()
+    )
+    for frame in _frames(4):
+        out = never.upscale(frame, DISPLAY)
+        assert bool(torch.isfinite(out).all())
+    assert never.stats.cached == 3
+    kept = never.cache.branches["body.inner"].kept
+    assert kept is not None and kept.dtype == torch.float16 and kept.is_cuda
+    assert never.stats.cache_bytes == kept.numel() * 2
+
+
+def test_the_frame_delta_reference_is_a_copy_of_the_refresh_colour() -> None:
+    _, cached = _pair(policy="delta@0.01", feedback=False)
+    frame = make_frame(0, SIZE, shift=0)
+    cached.upscale(frame, DISPLAY)
+    kept = frame.color.copy()
+    frame.color[:] = 0  # the ring slot is overwritten by a later frame
+    cached.upscale(make_frame(1, SIZE, shift=0), DISPLAY)  # same picture as frame 0
+    assert cached.last_action == "cached"
+    assert cached.stats.reference_bytes == kept.nbytes
