@@ -161,7 +161,7 @@ def default_loader(device: str) -> LoadNetwork:
     def load(name: str) -> NeuralUpscalerLike:
         from upscalers import neural
 
-        return neural.load(name, device=device)  # type: ignore[no-any-return]
+        return neural.load(name, device=device)
 
     return load
 
