@@ -212,3 +212,22 @@ def test_the_frame_delta_reference_is_a_copy_of_the_refresh_colour() -> None:
     cached.upscale(make_frame(1, SIZE, shift=0), DISPLAY)  # same picture as frame 0
     assert cached.last_action == "cached"
     assert cached.stats.reference_bytes == kept.nbytes
+
+
+def test_unet_cached_from_the_registry_skips_work_on_a_still_scene() -> None:
+    from server.render.renderer import Renderer, RenderTargets
+    from upscalers import registry
+
+    size = Size(96, 54)
+    up = registry.create("unet_cached", policy="delta_l")
+    assert registry.is_temporal("unet_cached")
+    renderer = Renderer("static", size, scale=2.0)
+    outputs = [
+        up.upscale(renderer.render(i, i / 30, RenderTargets.allocate(size)), Size(192, 108))
+        for i in range(6)
+    ]
+    assert all(o.shape == (3, 108, 192) and torch.isfinite(o).all() for o in outputs)
+    stats = up.stats  # type: ignore[attr-defined]  # the registry hands out the base type
+    assert stats.refreshes >= 1 and stats.cached >= 3, stats
+    with pytest.raises(ValueError, match="policy"):
+        registry.create("unet_cached", policy="no_such_policy")

@@ -7,6 +7,7 @@ from collections.abc import Callable
 from typing import Any
 
 from upscalers.base import Upscaler
+from upscalers.cache.unet_cached import CachedUNetUpscaler
 from upscalers.fsr1 import EasuRcasUpscaler, EasuUpscaler
 from upscalers.lanczos import Lanczos2Upscaler
 from upscalers.neural.upscaler import UNetPlusPlusUpscaler, UNetUpscaler
@@ -25,6 +26,7 @@ _REGISTRY: dict[str, Callable[..., Upscaler]] = {
         TemporalUpscaler,
         UNetUpscaler,
         UNetPlusPlusUpscaler,
+        CachedUNetUpscaler,
     )
 }
 

@@ -2,7 +2,7 @@
 // They travel on the same input track as keys and mouse (type "control"/"keyframe").
 import type { InputPublisher } from "./input";
 
-export const UPSCALERS = ["nearest", "bilinear", "bicubic", "lanczos2", "easu", "easu_rcas", "temporal"] as const;
+export const UPSCALERS = ["nearest", "bilinear", "bicubic", "lanczos2", "easu", "easu_rcas", "temporal", "unet", "unetpp", "unet_cached"] as const;
 export const SCALES = [1.5, 2, 3] as const;
 
 /** Keeps the selects on what the server runs, except right after the viewer changed one. */
