@@ -20,9 +20,13 @@ import pytest
 from tests.e2e.conftest import FPS, Live, open_player, start_live, stats
 from tests.e2e.test_stream_e2e import needs
 
-pytestmark = [*needs("index.html"), pytest.mark.timeout(120)]
+pytestmark = [*needs("index.html"), pytest.mark.timeout(300)]
 
 PLAY_S = 8.0
+# The worker compiles MPE's numba kernels on a thread at start (about 18 s on a quiet
+# machine with an empty cache, as on a fresh checkout; longer under load): until then
+# predicted ticks are skipped, so the measurement starts once predictions flow.
+WARM_UP_S = 180.0
 
 
 @pytest.fixture(scope="module")
@@ -34,6 +38,9 @@ def live() -> Iterator[Live]:
 def test_the_page_shows_twice_the_rendered_rate(live: Live, browser: Any) -> None:
     page = open_player(browser, live.player_url(), frames=20)
     try:
+        page.wait_for_function(
+            "() => window.upcast.stats().predictedShare >= 0.4", timeout=WARM_UP_S * 1000
+        )
         t0 = time.monotonic()
         first = stats(page)["framesPresented"]
         page.wait_for_timeout(PLAY_S * 1000)
