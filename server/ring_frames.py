@@ -74,6 +74,22 @@ def render_frame_of(lease: ReadLease) -> RenderFrame:
     )
 
 
+def put_render_frame(ring: FrameRing, frame: RenderFrame, timeout_s: float) -> bool:
+    """Copy a frame that already exists into the next ring R slot (False: no slot in time).
+
+    The game renders straight into its slot instead; this is for frames made
+    elsewhere (tests, replays, an engine that keeps its own G-buffers)."""
+    lease = ring.acquire_write(timeout_s)
+    if lease is None:
+        return False
+    views = lease.views(*frame.size)
+    for key in ("color", "depth", "motion", "dynamic_mask"):
+        views[key][...] = getattr(frame, key)
+    write_meta(lease.header, frame.meta)
+    lease.commit()
+    return True
+
+
 def display_frame_of(lease: ReadLease) -> DisplayFrame:
     return DisplayFrame(color=lease.planes["color"], meta=read_meta(lease.header))
 

@@ -21,7 +21,7 @@ from server.metrics_process import GAME_METRICS, WORKER_METRICS, game_registry, 
 from server.render.camera import CameraInput
 from server.render.renderer import Renderer, RenderTargets
 from server.ring import RingMode
-from server.ring_frames import create_display_ring, create_render_ring, write_meta
+from server.ring_frames import create_display_ring, create_render_ring, put_render_frame
 from server.worker import UpscaleWorker
 from upscalers.host import UpscalerHost
 
@@ -56,13 +56,7 @@ def send_frame(ring_r: object, renderer: Renderer, index: int, poison: bool = Fa
     frame = renderer.render(index, index / 30, RenderTargets.allocate(RENDER))
     if poison:
         frame.depth[:2] = np.nan
-    lease = ring_r.acquire_write(5.0)  # type: ignore[attr-defined]
-    assert lease is not None
-    views = lease.views(*frame.size)
-    for key in ("color", "depth", "motion", "dynamic_mask"):
-        views[key][...] = getattr(frame, key)
-    write_meta(lease.header, frame.meta)
-    lease.commit()
+    assert put_render_frame(ring_r, frame, 5.0)  # type: ignore[arg-type]
 
 
 def test_worker_counts_upscales_sanitized_frames_control_and_upscaler(

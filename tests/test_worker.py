@@ -21,7 +21,7 @@ from server.ring_frames import (
     create_display_ring,
     create_render_ring,
     display_frame_of,
-    write_meta,
+    put_render_frame,
 )
 from upscalers.host import UpscalerHost
 from upscalers.output import to_uint8
@@ -58,13 +58,7 @@ class WorkerUnderTest:
         return proc
 
     def send(self, frame: RenderFrame) -> None:
-        lease = self.ring_r.acquire_write(5.0)
-        assert lease is not None
-        views = lease.views(*frame.size)
-        for key in ("color", "depth", "motion", "dynamic_mask"):
-            views[key][...] = getattr(frame, key)
-        write_meta(lease.header, frame.meta)
-        lease.commit()
+        assert put_render_frame(self.ring_r, frame, 5.0)
 
     def receive(self, count: int) -> list[tuple[int, np.ndarray]]:
         out = []

@@ -20,7 +20,7 @@ from server.ring_frames import (
     create_display_ring,
     create_render_ring,
     display_frame_of,
-    write_meta,
+    put_render_frame,
 )
 from server.worker import UpscaleWorker
 from server.worker_prediction import PredictionStage
@@ -91,13 +91,7 @@ class Pipe:
     def run(self, frames: list[RenderFrame]) -> list[tuple[FrameMeta, np.ndarray]]:
         out = []
         for frame in frames:
-            lease = self.ring_r.acquire_write(5.0)
-            assert lease is not None
-            views = lease.views(*frame.size)
-            for key in ("color", "depth", "motion", "dynamic_mask"):
-                views[key][...] = getattr(frame, key)
-            write_meta(lease.header, frame.meta)
-            lease.commit()
+            assert put_render_frame(self.ring_r, frame, 5.0)
             assert self.worker.process_next(5.0)
             got = self.ring_u.acquire_read(0.0)
             if got is not None:
