@@ -21,7 +21,7 @@ from server.bench.report import BenchReport, summarize_ms
 from server.frame import FrameFlags
 from server.ring import FrameRing
 from server.stack import LocalStack, SessionConfig
-from server.timing import STAGE_SPANS, Stage
+from server.timing import STAGE_COUNT, STAGE_SPANS, Stage
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -172,11 +172,11 @@ def _measure(config: SessionConfig, args: argparse.Namespace) -> dict[str, Any]:
                 record = np.array(lease.header["stamps"], dtype=np.int64)
                 record[Stage.ENCODE_START] = (time.monotonic_ns(), time.time_ns())
                 frame_id = int(lease.header["frame_id"])
-                flags = FrameFlags(int(lease.header["flags"]) & int(FrameFlags.PREDICTED))
+                was_predicted = bool(int(lease.header["flags"]) & FrameFlags.PREDICTED)
             if now >= measure_from:
                 stamps.append(record)
                 frame_ids.append(frame_id)
-                predicted.append(bool(flags & FrameFlags.PREDICTED))
+                predicted.append(was_predicted)
                 received_ns.append(int(record[Stage.ENCODE_START, 0]))
             if now >= next_progress:
                 print(
@@ -193,11 +193,12 @@ def _measure(config: SessionConfig, args: argparse.Namespace) -> dict[str, Any]:
     dropped_r = end_r.dropped - base_r.dropped
     dropped_u = end_u.dropped - base_u.dropped
     n_pred = sum(predicted)
+    kinds = np.asarray(predicted, dtype=bool)
+    mono = np.stack(stamps)[:, :, 0] if stamps else np.zeros((0, STAGE_COUNT), np.int64)
     by_kind = {
-        kind: _summarize([s for s, p in zip(stamps, predicted, strict=True) if p == want],
-                         [0], [0])["stages"].get("upscale", {})
+        kind: _span_ms(mono[kinds == want], Stage.UPSCALE_START, Stage.UPSCALE_END)
         for kind, want in (("rendered", False), ("predicted", True))
-    }  # fmt: skip
+    }
     return {
         "achieved_fps": result["fps"],
         "rendered_fps": game_rendered_fps,
@@ -235,6 +236,13 @@ def _print_case(name: str, case: dict[str, Any], fps: float) -> None:
             print(f"{'upscale (' + kind + ')':34} {s['median_ms']:8.3f} {s['p95_ms']:8.3f}")
 
 
+def _span_ms(mono: np.ndarray, start: Stage, end: Stage) -> dict[str, float]:
+    """Summary of span start -> end over the (N, STAGE_COUNT) monotonic stamps of the
+    frames that have both."""
+    ok = (mono[:, start] > 0) & (mono[:, end] > 0)
+    return summarize_ms((mono[ok, end] - mono[ok, start]) / 1e6) if ok.any() else {}
+
+
 def _summarize(
     stamps: list[np.ndarray], frame_ids: list[int], received_ns: list[int]
 ) -> dict[str, Any]:
@@ -245,9 +253,9 @@ def _summarize(
     mono = arr[:, :, 0]
     spans = [s for s in STAGE_SPANS if s[2] <= Stage.ENCODE_START]
     for name, a, b in spans:
-        ok = (mono[:, a] > 0) & (mono[:, b] > 0)
-        if ok.any():
-            stages[name] = summarize_ms((mono[ok, b] - mono[ok, a]) / 1e6)
+        span = _span_ms(mono, a, b)
+        if span:
+            stages[name] = span
     stages["render_start_to_ring_u_consumer"] = summarize_ms(
         (mono[:, Stage.ENCODE_START] - mono[:, Stage.RENDER_START]) / 1e6
     )
