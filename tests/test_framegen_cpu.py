@@ -157,3 +157,49 @@ def test_tiny_frames() -> None:
 def test_warm_up_runs_once() -> None:
     MeshProjectionPredictor(device="cpu")  # compiles or loads the kernels
     assert warm_up(MpeOptions()) == 0.0
+
+
+def _hole_masks(h: int, w: int, rng: np.random.Generator) -> dict[str, np.ndarray]:
+    """Hole layouts that exercise every path of the block-wise fill."""
+    masks = {"scattered": rng.random((h, w)) < 0.1}
+    blob = np.zeros((h, w), bool)
+    blob[h // 3 : h // 3 + max(1, h // 5), w // 4 : w // 4 + max(1, w // 6)] = True
+    masks["blob"] = blob  # holes with valid pixels in their own 32 x 32 blocks
+    big = np.zeros((h, w), bool)
+    big[:, : max(1, 3 * w // 4)] = True
+    big[: h // 2] = True
+    masks["most_of_the_frame"] = big  # whole blocks without a valid pixel
+    one_left = np.ones((h, w), bool)
+    one_left[h - 1, w - 1] = False
+    masks["one_valid_pixel"] = one_left
+    masks["none"] = np.zeros((h, w), bool)
+    masks["all"] = np.ones((h, w), bool)
+    return masks
+
+
+@pytest.mark.parametrize("size", [(360, 640), (91, 161), (14, 24), (16, 16), (33, 65), (1, 1)])
+@pytest.mark.parametrize("channels", [1, 3])
+def test_block_fill_matches_the_whole_frame_pyramid(size: tuple[int, int], channels: int) -> None:
+    """The numba fill works per 32 x 32 block; it must give what torch's whole-frame
+    pull-push gives, for holes inside blocks, whole empty blocks, and the edge cases."""
+    from upscalers.framegen import cpu_kernels
+    from upscalers.framegen.fill import pull_push_fill
+
+    h, w = size
+    rng = np.random.default_rng(h * 1000 + w)
+    for name, holes in _hole_masks(h, w, rng).items():
+        values = (rng.random((h, w, channels)) * 255).astype(np.float32)
+        want = pull_push_fill(torch.from_numpy(values.copy()), torch.from_numpy(holes)).numpy()
+        got = values.copy()
+        n = cpu_kernels.pull_push_fill(got, holes, False)
+        assert n == int(holes.sum()), name
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-3, err_msg=name)
+        colour = values.astype(np.uint8)
+        rounded = colour.copy()
+        cpu_kernels.pull_push_fill(rounded, holes, True)
+        want8 = pull_push_fill(
+            torch.from_numpy(colour.astype(np.float32)), torch.from_numpy(holes)
+        ).numpy()
+        want8 = np.clip(want8 + 0.5, 0, 255).astype(np.uint8)
+        assert (np.abs(rounded.astype(int) - want8) <= 1).all(), name
+        assert np.array_equal(rounded[~holes], colour[~holes]), name

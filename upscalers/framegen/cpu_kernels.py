@@ -62,8 +62,11 @@ def sanitize_frame(color_src, depth_src, dyn_src, packed, depth, dynamic):
 
 
 @njit(**_JIT)
-def pull_push_fill(values, holes):
-    """``fill.pull_push_fill`` in place on (H, W, C) float32 ``values``; returns the hole count."""
+def _pull_push_dense(values, holes):
+    """``fill.pull_push_fill`` in place on (H, W, C) float32 ``values`` over the whole pyramid.
+
+    Used on the coarse grid of fill blocks (``pull_push_fill``); returns the hole count.
+    """
     h, w, nc = values.shape
     n_holes = 0
     for y in range(h):
@@ -143,6 +146,184 @@ def pull_push_fill(values, holes):
             if holes[y, x]:
                 for c in range(nc):
                     values[y, x, c] = img[y * w + x, c]
+    return n_holes
+
+
+FILL_LEVELS = 5  # pyramid levels kept inside one fill block
+FILL_BLOCK = 1 << FILL_LEVELS  # a fill block is one cell of pyramid level FILL_LEVELS
+
+
+@njit(inline="always", **_JIT)
+def _load(values, y, x, c):
+    return F32(values[y, x, c])
+
+
+@njit(**_JIT)
+def _fill_block(
+    values, holes, quantize, y0, x0, lvl_img, lvl_wt, fill_holes, grid, grid_wt, by, bx
+):
+    """Pull one fill block's pyramid (levels 0 .. FILL_LEVELS) and fill its holes from it.
+
+    Every pull-push weight is 0 or 1 (a hole counts 0, a pixel 1, a coarser cell
+    1 if any of its pixels is valid), and a hole's pushed value is the pulled
+    value of its first ancestor that has weight 1, which depends only on the
+    pixels under that ancestor. So a block with a valid pixel fills its holes
+    exactly as the whole-frame pyramid would, from its own pixels; the block's
+    top value and weight go to ``grid`` for blocks with no valid pixel.
+    Cells, sizes and summation order follow ``_pull_push_dense``, so the values
+    are the same bit for bit.
+    """
+    h, w, nc = values.shape
+    bh, bw = min(FILL_BLOCK, h - y0), min(FILL_BLOCK, w - x0)
+    one = F32(1.0)
+    for y in range(bh):
+        for x in range(bw):
+            valid = not holes[y0 + y, x0 + x]
+            lvl_wt[0, y, x] = one if valid else F32(0.0)
+            for c in range(nc):
+                lvl_img[0, y, x, c] = _load(values, y0 + y, x0 + x, c) if valid else F32(0.0)
+    sh, sw = bh, bw
+    for lv in range(1, FILL_LEVELS + 1):
+        dh, dw = (sh + 1) // 2, (sw + 1) // 2
+        for y in range(dh):
+            for x in range(dw):
+                s_w = F32(0.0)
+                for c in range(nc):
+                    lvl_img[lv, y, x, c] = 0.0
+                for yy in range(2 * y, min(2 * y + 2, sh)):
+                    for xx in range(2 * x, min(2 * x + 2, sw)):
+                        s_w += lvl_wt[lv - 1, yy, xx]
+                        for c in range(nc):
+                            lvl_img[lv, y, x, c] += lvl_img[lv - 1, yy, xx, c]
+                div = max(s_w, one)
+                for c in range(nc):
+                    lvl_img[lv, y, x, c] = lvl_img[lv, y, x, c] / div
+                lvl_wt[lv, y, x] = min(s_w, one)
+        sh, sw = dh, dw
+    grid_wt[by, bx] = lvl_wt[FILL_LEVELS, 0, 0]
+    for c in range(nc):
+        grid[by, bx, c] = lvl_img[FILL_LEVELS, 0, 0, c]
+    if not fill_holes or lvl_wt[FILL_LEVELS, 0, 0] == 0.0:
+        return
+    for y in range(bh):
+        for x in range(bw):
+            if not holes[y0 + y, x0 + x]:
+                continue
+            lv = 1
+            while lvl_wt[lv, y >> lv, x >> lv] == 0.0:
+                lv += 1
+            for c in range(nc):
+                _store(values, y0 + y, x0 + x, c, lvl_img[lv, y >> lv, x >> lv, c], quantize)
+
+
+@njit(inline="always", **_JIT)
+def _store(values, y, x, c, v, quantize):
+    if quantize:  # 8-bit colour: round to nearest, clamped
+        values[y, x, c] = min(max(v + F32(0.5), F32(0.0)), F32(255.0))
+    else:
+        values[y, x, c] = v
+
+
+@njit(parallel=True, **_JIT)
+def pull_push_fill(values, holes, quantize):
+    """``fill.pull_push_fill`` in place on (H, W, C) ``values``; returns the hole count.
+
+    ``quantize``: ``values`` is 8-bit colour, filled in float32 and rounded.
+
+    Work is per 32 x 32 block that has holes (see ``_fill_block``), so the cost
+    follows the holes, not the frame. Only blocks without a single valid pixel
+    need the coarser levels: the blocks under their first weighted ancestor are
+    pulled too, and that coarse grid is pull-pushed whole (it is small).
+    """
+    h, w, nc = values.shape
+    nby, nbx = (h + FILL_BLOCK - 1) // FILL_BLOCK, (w + FILL_BLOCK - 1) // FILL_BLOCK
+    n_holes_b = np.zeros((nby, nbx), np.int64)
+    for by in prange(nby):
+        for bx in range(nbx):
+            count = 0
+            for y in range(by * FILL_BLOCK, min(h, (by + 1) * FILL_BLOCK)):
+                for x in range(bx * FILL_BLOCK, min(w, (bx + 1) * FILL_BLOCK)):
+                    count += holes[y, x]
+            n_holes_b[by, bx] = count
+    n_holes = 0
+    n_empty = 0
+    for by in range(nby):
+        for bx in range(nbx):
+            n_holes += n_holes_b[by, bx]
+            bh = min(FILL_BLOCK, h - by * FILL_BLOCK)
+            bw = min(FILL_BLOCK, w - bx * FILL_BLOCK)
+            n_empty += n_holes_b[by, bx] == bh * bw
+    if n_holes == 0:
+        return 0
+    if n_holes == h * w:
+        values[:] = 0
+        return n_holes
+    # Which blocks to pull: those with holes, and for blocks with no valid pixel
+    # every block under their first ancestor (in block units) that has one.
+    pull = np.zeros((nby, nbx), np.bool_)
+    for by in range(nby):
+        for bx in range(nbx):
+            pull[by, bx] = n_holes_b[by, bx] > 0
+    if n_empty:
+        for by in range(nby):
+            for bx in range(nbx):
+                bh = min(FILL_BLOCK, h - by * FILL_BLOCK)
+                bw = min(FILL_BLOCK, w - bx * FILL_BLOCK)
+                if n_holes_b[by, bx] != bh * bw:
+                    continue
+                k = 1
+                while True:
+                    ay0, ax0 = (by >> k) << k, (bx >> k) << k
+                    ay1, ax1 = min(ay0 + (1 << k), nby), min(ax0 + (1 << k), nbx)
+                    found = False
+                    for yy in range(ay0, ay1):
+                        for xx in range(ax0, ax1):
+                            bh2 = min(FILL_BLOCK, h - yy * FILL_BLOCK)
+                            bw2 = min(FILL_BLOCK, w - xx * FILL_BLOCK)
+                            found |= n_holes_b[yy, xx] < bh2 * bw2
+                    if found:
+                        for yy in range(ay0, ay1):
+                            for xx in range(ax0, ax1):
+                                pull[yy, xx] = True
+                        break
+                    k += 1
+    grid = np.zeros((nby, nbx, nc), np.float32)
+    grid_wt = np.zeros((nby, nbx), np.float32)
+    for by in prange(nby):
+        lvl_img = np.empty((FILL_LEVELS + 1, FILL_BLOCK, FILL_BLOCK, nc), np.float32)
+        lvl_wt = np.empty((FILL_LEVELS + 1, FILL_BLOCK, FILL_BLOCK), np.float32)
+        for bx in range(nbx):
+            if pull[by, bx]:
+                _fill_block(
+                    values,
+                    holes,
+                    quantize,
+                    by * FILL_BLOCK,
+                    bx * FILL_BLOCK,
+                    lvl_img,
+                    lvl_wt,
+                    n_holes_b[by, bx] > 0,
+                    grid,
+                    grid_wt,
+                    by,
+                    bx,
+                )
+    if n_empty:
+        grid_holes = np.zeros((nby, nbx), np.bool_)
+        for by in range(nby):
+            for bx in range(nbx):
+                grid_holes[by, bx] = grid_wt[by, bx] == 0.0
+        _pull_push_dense(grid, grid_holes)
+        for by in prange(nby):
+            for bx in range(nbx):
+                bh = min(FILL_BLOCK, h - by * FILL_BLOCK)
+                bw = min(FILL_BLOCK, w - bx * FILL_BLOCK)
+                if n_holes_b[by, bx] != bh * bw:
+                    continue  # filled by its own block (or has no holes)
+                for y in range(by * FILL_BLOCK, min(h, (by + 1) * FILL_BLOCK)):
+                    for x in range(bx * FILL_BLOCK, min(w, (bx + 1) * FILL_BLOCK)):
+                        for c in range(nc):
+                            _store(values, y, x, c, grid[by, bx, c], quantize)
     return n_holes
 
 
@@ -495,16 +676,16 @@ def pixel_stage(
     tolerance,
     min_shift,
     iterations,
-    out_packed,
+    out_rgb,
     out_depth,
     holes,
     no_colour,
 ):
     """``mpe._predict`` after the raster: shear correction, colour, depth, hole masks.
 
-    Flat (H * W,) arrays except ``out_depth`` (H, W); ``packed``/``out_packed``
-    hold RGB as 0x00BBGGRR; ``fm``/``gm`` are float32 (4, 4). Work goes row by
-    row in passes over row buffers: the arithmetic passes vectorize, the
+    Flat (H * W,) arrays except ``out_depth`` (H, W) and ``out_rgb`` (H, W, 3) uint8;
+    ``packed`` holds the cached RGB as 0x00BBGGRR; ``fm``/``gm`` are float32 (4, 4).
+    Work goes row by row in passes over row buffers: the arithmetic passes vectorize, the
     gathers (depth and colour at data-dependent positions) stay scalar.
     """
     h, w = out_depth.shape
@@ -527,7 +708,7 @@ def pixel_stage(
         )
         i4 = np.empty((6, w), np.int32)
         src, prev, i00, i01, i10, i11 = i4[0], i4[1], i4[2], i4[3], i4[4], i4[5]
-        u4 = np.empty((4, w), np.uint32)
+        u4 = np.empty((5, w), np.uint32)
         b1 = np.empty((3, w), np.bool_)
         ok, agree, cov = b1[0], b1[1], b1[2]
         for y in range(blk * ROW_BLOCK, min(h, (blk + 1) * ROW_BLOCK)):
@@ -588,42 +769,11 @@ def pixel_stage(
                 u4[1],
                 u4[2],
                 u4[3],
-                out_packed[row : row + w],
+                u4[4],
             )
-
-
-@njit(parallel=True, **_JIT)
-def unpack_rgb(packed, out):
-    """0x00BBGGRR (H * W,) -> (H, W, 3) uint8."""
-    h, w, _ = out.shape
-    for blk in prange((h + ROW_BLOCK - 1) // ROW_BLOCK):
-        for y in range(blk * ROW_BLOCK, min(h, (blk + 1) * ROW_BLOCK)):
+            m8 = np.uint32(255)
             for x in range(w):
-                p = packed[y * w + x]
-                out[y, x, 0] = np.uint8(p & np.uint32(255))
-                out[y, x, 1] = np.uint8((p >> np.uint32(8)) & np.uint32(255))
-                out[y, x, 2] = np.uint8((p >> np.uint32(16)) & np.uint32(255))
-
-
-@njit(**_JIT)
-def fill_packed(packed, holes, w, h, scratch):
-    """``pull_push_fill`` of packed RGB at ``holes`` (flat), via the float (H, W, 3) ``scratch``."""
-    any_hole = False
-    for p in range(w * h):
-        any_hole |= holes[p]
-    if not any_hole:
-        return
-    for p in range(w * h):
-        c = packed[p]
-        y, x = p // w, p % w
-        for k in range(3):
-            scratch[y, x, k] = F32((c >> np.uint32(8 * k)) & np.uint32(255))
-    pull_push_fill(scratch, holes.reshape(h, w))
-    for p in range(w * h):
-        if holes[p]:
-            y, x = p // w, p % w
-            res = np.uint32(0)
-            for k in range(3):
-                val = min(max(scratch[y, x, k] + F32(0.5), F32(0.0)), F32(255.0))
-                res |= np.uint32(val) << np.uint32(8 * k)
-            packed[p] = res
+                c = u4[4, x]
+                out_rgb[y, x, 0] = np.uint8(c & m8)
+                out_rgb[y, x, 1] = np.uint8((c >> np.uint32(8)) & m8)
+                out_rgb[y, x, 2] = np.uint8((c >> np.uint32(16)) & m8)

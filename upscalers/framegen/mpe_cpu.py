@@ -5,7 +5,7 @@ the reference and the CUDA path); see ``cpu_kernels`` for why it is faster on
 the CPU. ``observe`` copies the rendered frame into buffers kept across frames
 (sanitized depth, with dynamic pixels already replaced by the guessed
 background, as the torch path does on every ``predict``); ``predict`` runs
-vertices -> raster -> pixel stage -> pull-push fill, reusing scratch buffers of
+vertices -> raster -> pixel stage -> pull-push fill of the 8-bit colour, reusing scratch buffers of
 the frame size. Returned arrays are fresh, never scratch.
 """
 
@@ -63,7 +63,6 @@ class _Scratch:
     depth_eff: F32Array
     tri_of: npt.NDArray[np.int32]
     zbuf: F32Array
-    fill: F32Array  # (H, W, 3) float colour for the pull-push fill
 
     @staticmethod
     def allocate(w: int, h: int) -> _Scratch:
@@ -71,7 +70,6 @@ class _Scratch:
             np.empty((h, w), np.float32),
             np.empty(h * w, np.int32),
             np.empty(h * w, np.float32),
-            np.empty((h, w, 3), np.float32),
         )
 
 
@@ -124,7 +122,7 @@ class HostMeshProjection:
         if n_dynamic:
             # Dynamic pixels carry the moving object's depth: the mesh wants the static
             # background behind them, guessed from the surroundings.
-            kernels.pull_push_fill(depth.reshape(h, w, 1), dynamic)
+            kernels.pull_push_fill(depth.reshape(h, w, 1), dynamic, False)
         cam = frame.meta.camera
         self.frame = HostFrame(
             packed,
@@ -165,7 +163,7 @@ class HostMeshProjection:
         depth = np.empty((h, w), np.float32)
         holes = np.empty(h * w, np.bool_)
         no_colour = np.empty(h * w, np.bool_)
-        packed = np.empty(h * w, np.uint32)
+        color = np.empty((h, w, 3), np.uint8)
         kernels.pixel_stage(
             s.tri_of,
             planes,
@@ -180,14 +178,12 @@ class HostMeshProjection:
             o.shear_tolerance,
             o.shear_min_shift_px,
             o.shear_iterations,
-            packed,
+            color,
             depth,
             holes,
             no_colour,
         )
-        kernels.fill_packed(packed, no_colour, w, h, s.fill)
-        color = np.empty((h, w, 3), np.uint8)
-        kernels.unpack_rgb(packed, color)
+        kernels.pull_push_fill(color, no_colour.reshape(h, w), True)
         return Prediction(
             color, holes.reshape(h, w), depth, frame.frame_id, no_colour.reshape(h, w)
         )
