@@ -38,10 +38,13 @@ EDGE_EPS = 1e-5  # raster.rasterize's eps: pixel centres this far outside an edg
 
 
 @njit(parallel=True, **_JIT)
-def sanitize_frame(color_src, depth_src, dyn_src, packed, depth, dynamic):
+def sanitize_frame(color_src, depth_src, dyn_src, packed, depth, dynamic, z_inf, depth_eff):
     """Copy a rendered frame into the cache buffers: colour packed as 0x00BBGGRR (flat),
-    NaN/+inf depth -> 1 (sky), -inf -> 0, dynamic mask as bool. Returns the dynamic pixel count.
+    NaN/+inf depth -> 1 (sky), -inf -> 0, dynamic mask as bool, and ``depth_eff`` as
+    ``sky_as_direction`` makes it (unless ``z_inf`` is NaN). Returns the dynamic pixel count.
     """
+    zf = F32(z_inf)
+    make_eff = z_inf == z_inf
     h, w = depth.shape
     n_dyn = 0
     for blk in prange((h + ROW_BLOCK - 1) // ROW_BLOCK):
@@ -55,6 +58,8 @@ def sanitize_frame(color_src, depth_src, dyn_src, packed, depth, dynamic):
                 d = depth_src[y, x]
                 d = F32(1.0) if (d != d) | (d > F32(1.0)) else max(d, F32(0.0))
                 depth[y, x] = d
+                if make_eff:
+                    depth_eff[y, x] = zf if d >= F32(1.0) else d
                 m = dyn_src[y, x] != 0
                 dynamic[y, x] = m
                 n_dyn += np.int64(m)
@@ -661,6 +666,33 @@ def _bilinear_row(n, packed, u, v, w, h, i00, i01, i10, i11, fx, fy, t00, t01, t
         out[i] = np.uint32(res)
 
 
+@njit(inline="always", **_JIT)
+def _store_rgb_row(row_packed, out_rgb, out_words, y):
+    """Row ``y`` of 0x00BBGGRR pixels into (H, W, 3) uint8 ``out_rgb``.
+
+    When a row is a whole number of 32-bit words (W divisible by 4) and
+    ``out_words`` views ``out_rgb``'s memory, four pixels go out as three words
+    (vectorizes); otherwise byte by byte.
+    """
+    w = out_rgb.shape[1]
+    if out_words.size == 0 or w % 4 != 0:
+        m8 = np.uint32(255)
+        for x in range(w):
+            c = row_packed[x]
+            out_rgb[y, x, 0] = np.uint8(c & m8)
+            out_rgb[y, x, 1] = np.uint8((c >> np.uint32(8)) & m8)
+            out_rgb[y, x, 2] = np.uint8((c >> np.uint32(16)) & m8)
+        return
+    base = y * (w * 3 // 4)
+    for g in range(w // 4):
+        c0, c1 = row_packed[4 * g], row_packed[4 * g + 1]
+        c2, c3 = row_packed[4 * g + 2], row_packed[4 * g + 3]
+        # Little-endian bytes R0 G0 B0 R1 | G1 B1 R2 G2 | B2 R3 G3 B3
+        out_words[base + 3 * g] = c0 | (c1 << np.uint32(24))
+        out_words[base + 3 * g + 1] = (c1 >> np.uint32(8)) | (c2 << np.uint32(16))
+        out_words[base + 3 * g + 2] = (c2 >> np.uint32(16)) | (c3 << np.uint32(8))
+
+
 @njit(parallel=True, **_JIT)
 def pixel_stage(
     tri_of,
@@ -677,13 +709,15 @@ def pixel_stage(
     min_shift,
     iterations,
     out_rgb,
+    out_words,
     out_depth,
     holes,
     no_colour,
 ):
     """``mpe._predict`` after the raster: shear correction, colour, depth, hole masks.
 
-    Flat (H * W,) arrays except ``out_depth`` (H, W) and ``out_rgb`` (H, W, 3) uint8;
+    Flat (H * W,) arrays except ``out_depth`` (H, W) and ``out_rgb`` (H, W, 3) uint8
+    (``out_words``: the same memory as uint32 words, see ``_store_rgb_row``);
     ``packed`` holds the cached RGB as 0x00BBGGRR; ``fm``/``gm`` are float32 (4, 4).
     Work goes row by row in passes over row buffers: the arithmetic passes vectorize, the
     gathers (depth and colour at data-dependent positions) stay scalar.
@@ -771,9 +805,4 @@ def pixel_stage(
                 u4[3],
                 u4[4],
             )
-            m8 = np.uint32(255)
-            for x in range(w):
-                c = u4[4, x]
-                out_rgb[y, x, 0] = np.uint8(c & m8)
-                out_rgb[y, x, 1] = np.uint8((c >> np.uint32(8)) & m8)
-                out_rgb[y, x, 2] = np.uint8((c >> np.uint32(16)) & m8)
+            _store_rgb_row(u4[4], out_rgb, out_words, y)

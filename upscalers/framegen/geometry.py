@@ -98,6 +98,13 @@ def _z_at_infinity(p_inv: F64Array) -> float | None:
     return float(-b / a)
 
 
+def z_at_infinity(proj: npt.ArrayLike) -> float | None:
+    """NDC depth of the plane at infinity of one projection, as ``Reprojection.between``
+    computes it (None when non-finite, singular, orthographic or oblique)."""
+    inverses = _finite_inverses(np.asarray(proj, dtype=np.float64)[None])
+    return None if inverses is None else _z_at_infinity(inverses[0])
+
+
 def sky_as_direction(depth: torch.Tensor, z_inf: float) -> torch.Tensor:
     """Depth with sky (>= 1) replaced by the plane at infinity."""
     return torch.where(depth >= 1.0, torch.full_like(depth, z_inf), depth)

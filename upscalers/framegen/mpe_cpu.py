@@ -11,6 +11,8 @@ the frame size. Returned arrays are fresh, never scratch.
 
 from __future__ import annotations
 
+import math
+import sys
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -24,12 +26,14 @@ from numba import set_parallel_chunksize
 from server.frame import RenderFrame, Size
 from upscalers.framegen import cpu_kernels as kernels
 from upscalers.framegen.base import Prediction
-from upscalers.framegen.geometry import Reprojection, pixel_space_matrices
+from upscalers.framegen.geometry import Reprojection, pixel_space_matrices, z_at_infinity
 
 if TYPE_CHECKING:
     from upscalers.framegen.mpe import MpeOptions
 
 F32Array = npt.NDArray[np.float32]
+_WORD_ROWS = sys.byteorder == "little"
+_NO_WORDS = np.empty(0, np.uint32)
 
 
 @contextmanager
@@ -50,6 +54,10 @@ class HostFrame:
     packed: npt.NDArray[np.uint32]  # (H * W,) RGB as 0x00BBGGRR: one load per bilinear tap
     depth: F32Array  # (H, W) in [0, 1]; NaN -> 1; under dynamic objects the guessed background
     dynamic: npt.NDArray[np.bool_]  # (H, W)
+    # ``depth`` with sky at the plane at infinity of ``z_inf`` (geometry.sky_as_direction),
+    # made while sanitizing; NaN z_inf: not made yet (predict makes it).
+    depth_eff: F32Array
+    z_inf: float
     view: npt.NDArray[np.float64]
     proj: npt.NDArray[np.float64]
     frame_id: int
@@ -60,14 +68,12 @@ class HostFrame:
 class _Scratch:
     """Per-size working buffers of one prediction."""
 
-    depth_eff: F32Array
     tri_of: npt.NDArray[np.int32]
     zbuf: F32Array
 
     @staticmethod
     def allocate(w: int, h: int) -> _Scratch:
         return _Scratch(
-            np.empty((h, w), np.float32),
             np.empty(h * w, np.int32),
             np.empty(h * w, np.float32),
         )
@@ -106,30 +112,35 @@ class HostMeshProjection:
             )
         old = self.frame
         if old is not None and old.depth.shape == (h, w):
-            packed, depth, dynamic = old.packed, old.depth, old.dynamic  # only one is kept
+            # Only one frame is kept: reuse its buffers.
+            packed, depth, dynamic, depth_eff = old.packed, old.depth, old.dynamic, old.depth_eff
         else:
             packed = np.empty(h * w, np.uint32)
             depth = np.empty((h, w), np.float32)
             dynamic = np.empty((h, w), np.bool_)
+            depth_eff = np.empty((h, w), np.float32)
+        cam = frame.meta.camera
+        proj = np.asarray(cam.proj, dtype=np.float64)
+        # NaN when there is none: predict then gets no reprojection anyway.
+        z = z_at_infinity(proj)
+        z_inf = math.nan if z is None else z
         n_dynamic = kernels.sanitize_frame(
-            color_src,
-            depth_src,
-            dynamic_src,
-            packed,
-            depth,
-            dynamic,
+            color_src, depth_src, dynamic_src, packed, depth, dynamic, z_inf, depth_eff
         )
         if n_dynamic:
             # Dynamic pixels carry the moving object's depth: the mesh wants the static
             # background behind them, guessed from the surroundings.
             kernels.pull_push_fill(depth.reshape(h, w, 1), dynamic, False)
-        cam = frame.meta.camera
+            if z_inf == z_inf:
+                kernels.sky_as_direction(depth, z_inf, depth_eff)
         self.frame = HostFrame(
             packed,
             depth,
             dynamic,
+            depth_eff,
+            z_inf,
             np.asarray(cam.view, dtype=np.float64),
-            np.asarray(cam.proj, dtype=np.float64),
+            proj,
             frame.meta.frame_id,
             Size(w, h),
         )
@@ -141,14 +152,16 @@ class HostMeshProjection:
         o = self.options
         w, h = frame.size
         s = self._scratch
-        if s is None or s.zbuf.size != w * h or s.depth_eff.shape != (h, w):
+        if s is None or s.zbuf.size != w * h:
             s = self._scratch = _Scratch.allocate(w, h)
-        kernels.sky_as_direction(frame.depth, reproj.cached_z_inf, s.depth_eff)
+        if frame.z_inf != reproj.cached_z_inf:  # not made at observe (or NaN there)
+            kernels.sky_as_direction(frame.depth, reproj.cached_z_inf, frame.depth_eff)
+            frame.z_inf = reproj.cached_z_inf
         th, tw = -(-h // o.tile), -(-w // o.tile)
         verts = np.empty((6, th + 2, tw + 2), np.float64)
         kernels.mesh_vertices(
             frame.depth,
-            s.depth_eff,
+            frame.depth_eff,
             frame.dynamic,
             np.ascontiguousarray(reproj.forward, dtype=np.float64),
             o.tile,
@@ -164,10 +177,12 @@ class HostMeshProjection:
         holes = np.empty(h * w, np.bool_)
         no_colour = np.empty(h * w, np.bool_)
         color = np.empty((h, w, 3), np.uint8)
+        # The kernel writes whole rows as 32-bit words when it can (little-endian RGB).
+        words = color.reshape(-1).view(np.uint32) if _WORD_ROWS and w % 4 == 0 else _NO_WORDS
         kernels.pixel_stage(
             s.tri_of,
             planes,
-            s.depth_eff.reshape(-1),
+            frame.depth_eff.reshape(-1),
             frame.dynamic.reshape(-1),
             frame.packed,
             fm,
@@ -179,6 +194,7 @@ class HostMeshProjection:
             o.shear_min_shift_px,
             o.shear_iterations,
             color,
+            words,
             depth,
             holes,
             no_colour,
