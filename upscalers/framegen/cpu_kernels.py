@@ -512,14 +512,16 @@ def _setup_triangle(verts, t, n_half, nx, w, h, max_bbox_pixels, planes, bary):
 
 
 @njit(parallel=True, **_JIT)
-def rasterize(verts, w, h, max_bbox_pixels, tri_of, zbuf, planes):
+def rasterize(verts, w, h, max_bbox_pixels, zbuf, u_map, v_map, planes):
     """Scanline raster of the vertex grid with a depth test (``raster.rasterize``).
 
-    Writes per pixel the winning triangle (``tri_of``, -1 where none) and its
-    depth (``zbuf``), and per triangle the screen planes (a, b, c) of depth,
-    u and v (``planes``, (T, 3, 3)) that the pixel stage evaluates. Triangles
-    are set up in parallel, then row bands are rasterized in parallel, each
-    band walking the triangles in id order, so ties keep the lowest id.
+    Writes per pixel the winning triangle's depth (``zbuf``, inf where none)
+    and the source position its u and v planes give at the pixel centre
+    (``u_map``, ``v_map``: what ``raster.rasterize``'s triangle id leads to),
+    and per triangle the screen planes (a, b, c) of depth, u and v
+    (``planes``, (T, 3, 3)). Triangles are set up in parallel, then row bands
+    are rasterized in parallel, each band walking the triangles in id order, so
+    ties keep the lowest id.
     """
     half = F32(0.5)
     eps = F32(EDGE_EPS)
@@ -537,8 +539,9 @@ def rasterize(verts, w, h, max_bbox_pixels, tri_of, zbuf, planes):
     for band in prange(RASTER_BANDS):
         top, bottom = band * band_h, min(h, (band + 1) * band_h)
         for p in range(top * w, bottom * w):
-            tri_of[p] = -1
             zbuf[p] = np.inf
+            u_map[p] = F32(0.5)
+            v_map[p] = F32(0.5)
         # Spans of all rows of a triangle first (independent rows: vectorizes), then fills.
         span_lo = np.empty(band_h, np.int64)
         span_hi = np.empty(band_h, np.int64)
@@ -548,6 +551,8 @@ def rasterize(verts, w, h, max_bbox_pixels, tri_of, zbuf, planes):
             if first > last:
                 continue
             za, zb, zc = planes[t, 0, 0], planes[t, 0, 1], planes[t, 0, 2]
+            ua, ub, uc = planes[t, 1, 0], planes[t, 1, 1], planes[t, 1, 2]
+            va, vb, vc = planes[t, 2, 0], planes[t, 2, 1], planes[t, 2, 2]
             for j in range(last - first + 1):
                 cy = F32(first + j) + half
                 # The pixel centres inside all three edges (b_k(x) + eps >= 0): an edge bounds
@@ -571,12 +576,20 @@ def rasterize(verts, w, h, max_bbox_pixels, tri_of, zbuf, planes):
             for j in range(last - first + 1):
                 base = (first + j) * w
                 i0, z0 = span_lo[j], span_z[j]
+                cy = F32(first + j) + half
                 for i in range(i0, span_hi[j] + 1):
                     z = max(z0 + za * F32(i - i0), F32(0.0))
+                    cx = F32(i) + half
+                    # The same expressions as the torch pixel stage evaluates for the winner.
+                    uu = uc + ua * cx + ub * cy
+                    vv = vc + va * cx + vb * cy
                     # Triangles come in id order: a strict test keeps the lowest id on ties.
-                    if z < zbuf[base + i]:
-                        zbuf[base + i] = z
-                        tri_of[base + i] = t
+                    # Selects over loaded values, not a branch: the span vectorizes.
+                    z_old, u_old, v_old = zbuf[base + i], u_map[base + i], v_map[base + i]
+                    nearer = z < z_old
+                    zbuf[base + i] = z if nearer else z_old
+                    u_map[base + i] = uu if nearer else u_old
+                    v_map[base + i] = vv if nearer else v_old
 
 
 @njit(inline="always", **_JIT)
@@ -695,8 +708,9 @@ def _store_rgb_row(row_packed, out_rgb, out_words, y):
 
 @njit(parallel=True, **_JIT)
 def pixel_stage(
-    tri_of,
-    planes,
+    zbuf,
+    u_map,
+    v_map,
     depth_eff,
     dynamic,
     packed,
@@ -749,15 +763,9 @@ def pixel_stage(
             row = y * w
             cy = F32(y) + F32(0.5)
             for x in range(w):
-                t = tri_of[row + x]
-                c = t >= 0
-                tt = t if c else 0
-                cx = F32(x) + F32(0.5)
-                uu = planes[tt, 1, 2] + planes[tt, 1, 0] * cx + planes[tt, 1, 1] * cy
-                vv = planes[tt, 2, 2] + planes[tt, 2, 0] * cx + planes[tt, 2, 1] * cy
-                u[x] = uu if c else F32(0.5)
-                v[x] = vv if c else F32(0.5)
-                cov[x] = c
+                u[x] = u_map[row + x]
+                v[x] = v_map[row + x]
+                cov[x] = zbuf[row + x] < np.inf
             for x in range(w):
                 src[x] = _nearest(u[x], v[x], w, h)
             _gather(w, depth_eff, src, d0)
@@ -769,13 +777,17 @@ def pixel_stage(
             if shear:
                 for it in range(iterations):
                     for x in range(w):
+                        # Every operand loaded before the selects: a load inside a
+                        # conditional keeps LLVM from vectorizing the loop.
                         take = agree[x]
+                        ax, ay, bx, by = qx[x], qy[x], u[x], v[x]
+                        new_src, old_src = prev[x], src[x]
                         if shift2 > 0.0:
-                            dx, dy = qx[x] - u[x], qy[x] - v[x]
+                            dx, dy = ax - bx, ay - by
                             take = take & (dx * dx + dy * dy > shift2)
-                        u[x] = qx[x] if take else u[x]
-                        v[x] = qy[x] if take else v[x]
-                        src[x] = prev[x] if take else src[x]
+                        u[x] = ax if take else bx
+                        v[x] = ay if take else by
+                        src[x] = new_src if take else old_src
                     if it + 1 < iterations:
                         _gather(w, depth_eff, src, d0)
                         # z of later steps is unused: the output depth is the first step's.

@@ -68,15 +68,13 @@ class HostFrame:
 class _Scratch:
     """Per-size working buffers of one prediction."""
 
-    tri_of: npt.NDArray[np.int32]
-    zbuf: F32Array
+    zbuf: F32Array  # (H * W,) depth of the nearest triangle, inf where none
+    u_map: F32Array  # (H * W,) its source position (0.5 where none)
+    v_map: F32Array
 
     @staticmethod
     def allocate(w: int, h: int) -> _Scratch:
-        return _Scratch(
-            np.empty(h * w, np.int32),
-            np.empty(h * w, np.float32),
-        )
+        return _Scratch(*(np.empty(h * w, np.float32) for _ in range(3)))
 
 
 class HostMeshProjection:
@@ -171,7 +169,7 @@ class HostMeshProjection:
         )
         planes = np.empty((2 * (th + 1) * (tw + 1), 3, 3), np.float32)
         max_bbox = max(16, int(o.max_bbox_share * w * h))
-        kernels.rasterize(verts, w, h, max_bbox, s.tri_of, s.zbuf, planes)
+        kernels.rasterize(verts, w, h, max_bbox, s.zbuf, s.u_map, s.v_map, planes)
         fm, gm = (m.astype(np.float32) for m in pixel_space_matrices(reproj, w, h))
         depth = np.empty((h, w), np.float32)
         holes = np.empty(h * w, np.bool_)
@@ -180,8 +178,9 @@ class HostMeshProjection:
         # The kernel writes whole rows as 32-bit words when it can (little-endian RGB).
         words = color.reshape(-1).view(np.uint32) if _WORD_ROWS and w % 4 == 0 else _NO_WORDS
         kernels.pixel_stage(
-            s.tri_of,
-            planes,
+            s.zbuf,
+            s.u_map,
+            s.v_map,
             frame.depth_eff.reshape(-1),
             frame.dynamic.reshape(-1),
             frame.packed,
