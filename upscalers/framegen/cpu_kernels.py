@@ -38,23 +38,24 @@ EDGE_EPS = 1e-5  # raster.rasterize's eps: pixel centres this far outside an edg
 
 
 @njit(parallel=True, **_JIT)
-def sanitize_frame(color_src, depth_src, dyn_src, packed, depth, dynamic, z_inf, depth_eff):
+def sanitize_frame(
+    color_src, color_words, depth_src, dyn_src, packed, depth, dynamic, z_inf, depth_eff
+):
     """Copy a rendered frame into the cache buffers: colour packed as 0x00BBGGRR (flat),
     NaN/+inf depth -> 1 (sky), -inf -> 0, dynamic mask as bool, and ``depth_eff`` as
     ``sky_as_direction`` makes it (unless ``z_inf`` is NaN). Returns the dynamic pixel count.
+
+    ``color_words``: ``color_src``'s memory as uint32 words when rows are whole words
+    (W divisible by 4, contiguous), else empty; see ``_pack_rgb_row``.
     """
+    h, w = depth.shape
     zf = F32(z_inf)
     make_eff = z_inf == z_inf
-    h, w = depth.shape
     n_dyn = 0
     for blk in prange((h + ROW_BLOCK - 1) // ROW_BLOCK):
         for y in range(blk * ROW_BLOCK, min(h, (blk + 1) * ROW_BLOCK)):
+            _pack_rgb_row(color_src, color_words, y, packed)
             for x in range(w):
-                packed[y * w + x] = (
-                    np.uint32(color_src[y, x, 0])
-                    | (np.uint32(color_src[y, x, 1]) << np.uint32(8))
-                    | (np.uint32(color_src[y, x, 2]) << np.uint32(16))
-                )
                 d = depth_src[y, x]
                 d = F32(1.0) if (d != d) | (d > F32(1.0)) else max(d, F32(0.0))
                 depth[y, x] = d
@@ -64,6 +65,35 @@ def sanitize_frame(color_src, depth_src, dyn_src, packed, depth, dynamic, z_inf,
                 dynamic[y, x] = m
                 n_dyn += np.int64(m)
     return n_dyn
+
+
+@njit(inline="always", **_JIT)
+def _pack_rgb_row(color_src, color_words, y, packed):
+    """Row ``y`` of (H, W, 3) uint8 colour into ``packed`` as 0x00BBGGRR; from three
+    32-bit words per four pixels when ``color_words`` is given (vectorizes)."""
+    w = color_src.shape[1]
+    row = y * w
+    if color_words.size == 0 or w % 4 != 0:
+        for x in range(w):
+            packed[row + x] = (
+                np.uint32(color_src[y, x, 0])
+                | (np.uint32(color_src[y, x, 1]) << np.uint32(8))
+                | (np.uint32(color_src[y, x, 2]) << np.uint32(16))
+            )
+        return
+    base = y * (w * 3 // 4)
+    low24 = np.uint32(0x00FFFFFF)
+    for g in range(w // 4):
+        # Little-endian bytes R0 G0 B0 R1 | G1 B1 R2 G2 | B2 R3 G3 B3
+        a, b, c = (
+            color_words[base + 3 * g],
+            color_words[base + 3 * g + 1],
+            color_words[base + 3 * g + 2],
+        )
+        packed[row + 4 * g] = a & low24
+        packed[row + 4 * g + 1] = ((a >> np.uint32(24)) | (b << np.uint32(8))) & low24
+        packed[row + 4 * g + 2] = ((b >> np.uint32(16)) | (c << np.uint32(16))) & low24
+        packed[row + 4 * g + 3] = c >> np.uint32(8)
 
 
 @njit(**_JIT)
@@ -382,18 +412,29 @@ def mesh_vertices(depth_raw, depth_eff, dynamic, fwd, tile, tensile, tensile_thr
         best_y = np.empty(tw, np.int64)
         for yy in range(ty * tile, min(h, (ty + 1) * tile)):
             below = min(yy + 1, h - 1)  # the last row has no dy term: d - d = 0
-            for xx in range(w):
+            for xx in range(w - 1):
                 d = depth_raw[yy, xx]
-                dx = depth_raw[yy, min(xx + 1, w - 1)] - d
+                dx = depth_raw[yy, xx + 1] - d
                 dy = depth_raw[below, xx] - d
                 g = dx * dx + dy * dy
                 grad[xx] = F32(-1.0) if dynamic[yy, xx] else g
+            d = depth_raw[yy, w - 1]  # the last column has no dx term
+            dy = depth_raw[below, w - 1] - d
+            grad[w - 1] = F32(-1.0) if dynamic[yy, w - 1] else dy * dy
             for tx in range(tw):
                 if yy == ty * tile:
                     best_x[tx], best_y[tx] = tx * tile, yy
-                for xx in range(tx * tile, min(w, (tx + 1) * tile)):
-                    if grad[xx] > best[tx]:
-                        best[tx], best_x[tx], best_y[tx] = grad[xx], xx, yy
+                x0, x1 = tx * tile, min(w, (tx + 1) * tile)
+                # The row's maximum first (a reduction that vectorizes); only a strictly
+                # larger one moves the vertex, to its first pixel in the row.
+                m = grad[x0]
+                for xx in range(x0 + 1, x1):
+                    m = max(m, grad[xx])
+                if m > best[tx]:
+                    xx = x0
+                    while grad[xx] != m:
+                        xx += 1
+                    best[tx], best_x[tx], best_y[tx] = m, xx, yy
         for tx in range(tw):
             vx, vy = best_x[tx], best_y[tx]
             if tensile:

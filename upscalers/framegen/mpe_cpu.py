@@ -36,6 +36,15 @@ _WORD_ROWS = sys.byteorder == "little"
 _NO_WORDS = np.empty(0, np.uint32)
 
 
+def _as_words(rgb: npt.NDArray[np.uint8]) -> npt.NDArray[np.uint32]:
+    """(H, W, 3) uint8 colour as its uint32 words, for kernels that move four pixels as
+    three words; empty (the kernels go byte by byte) unless every row is whole words of
+    contiguous little-endian memory."""
+    if not (_WORD_ROWS and rgb.shape[1] % 4 == 0 and rgb.flags.c_contiguous):
+        return _NO_WORDS
+    return rgb.reshape(-1).view(np.uint32)
+
+
 @contextmanager
 def _one_block_at_a_time() -> Iterator[None]:
     """Parallel kernels hand out their row/triangle blocks one at a time, not half the
@@ -123,7 +132,15 @@ class HostMeshProjection:
         z = z_at_infinity(proj)
         z_inf = math.nan if z is None else z
         n_dynamic = kernels.sanitize_frame(
-            color_src, depth_src, dynamic_src, packed, depth, dynamic, z_inf, depth_eff
+            color_src,
+            _as_words(color_src),
+            depth_src,
+            dynamic_src,
+            packed,
+            depth,
+            dynamic,
+            z_inf,
+            depth_eff,
         )
         if n_dynamic:
             # Dynamic pixels carry the moving object's depth: the mesh wants the static
@@ -175,8 +192,6 @@ class HostMeshProjection:
         holes = np.empty(h * w, np.bool_)
         no_colour = np.empty(h * w, np.bool_)
         color = np.empty((h, w, 3), np.uint8)
-        # The kernel writes whole rows as 32-bit words when it can (little-endian RGB).
-        words = color.reshape(-1).view(np.uint32) if _WORD_ROWS and w % 4 == 0 else _NO_WORDS
         kernels.pixel_stage(
             s.zbuf,
             s.u_map,
@@ -193,7 +208,7 @@ class HostMeshProjection:
             o.shear_min_shift_px,
             o.shear_iterations,
             color,
-            words,
+            _as_words(color),
             depth,
             holes,
             no_colour,
