@@ -12,10 +12,10 @@ lowest triangle id at equal depth.
 
 Outputs are written into caller-owned arrays; nothing here allocates per
 pixel. ``parallel`` kernels split rows over numba's threads (``prange``) in
-blocks of rows or triangles; ``mpe_cpu`` has the threads take them one at a
-time (``set_parallel_chunksize``; it cannot be called in here without
-disabling the on-disk cache), so on shared cores a thread the OS parks delays
-only its block, not half the frame.
+blocks of rows or triangles; for the raster and the pixel stage ``mpe_cpu``
+has the threads take them one at a time (``set_parallel_chunksize``; it cannot
+be called in here without disabling the on-disk cache), so on shared cores a
+thread the OS parks delays only its block, not half the frame.
 """
 
 # numba has no type stubs and its decorators are untyped: mypy skips this module;
@@ -193,11 +193,21 @@ def _load(values, y, x, c):
     return F32(values[y, x, c])
 
 
+# Cells of levels 1 .. FILL_LEVELS of one block, each level at a fixed row stride
+# (16, 8, 4, 2, 1): offsets into one small flat buffer.
+_FILL_STRIDE = np.array([FILL_BLOCK >> lv for lv in range(FILL_LEVELS + 1)], np.int64)
+_FILL_OFFSET = np.array(
+    [0] + [sum((FILL_BLOCK >> k) ** 2 for k in range(1, lv)) for lv in range(1, FILL_LEVELS + 1)],
+    np.int64,
+)
+FILL_CELLS = sum((FILL_BLOCK >> k) ** 2 for k in range(1, FILL_LEVELS + 1))
+
+
 @njit(**_JIT)
 def _fill_block(
     values, holes, quantize, y0, x0, lvl_img, lvl_wt, fill_holes, grid, grid_wt, by, bx
 ):
-    """Pull one fill block's pyramid (levels 0 .. FILL_LEVELS) and fill its holes from it.
+    """Pull one fill block's pyramid (levels 1 .. FILL_LEVELS) and fill its holes from it.
 
     Every pull-push weight is 0 or 1 (a hole counts 0, a pixel 1, a coarser cell
     1 if any of its pixels is valid), and a hole's pushed value is the pulled
@@ -206,49 +216,70 @@ def _fill_block(
     exactly as the whole-frame pyramid would, from its own pixels; the block's
     top value and weight go to ``grid`` for blocks with no valid pixel.
     Cells, sizes and summation order follow ``_pull_push_dense``, so the values
-    are the same bit for bit.
+    are the same bit for bit. Level 0 is read in place; ``lvl_img`` (FILL_CELLS,
+    C) and ``lvl_wt`` (FILL_CELLS,) hold the rest (a few KB).
     """
     h, w, nc = values.shape
     bh, bw = min(FILL_BLOCK, h - y0), min(FILL_BLOCK, w - x0)
-    one = F32(1.0)
-    for y in range(bh):
-        for x in range(bw):
-            valid = not holes[y0 + y, x0 + x]
-            lvl_wt[0, y, x] = one if valid else F32(0.0)
+    one, zero = F32(1.0), F32(0.0)
+    # Level 1 from the pixels.
+    dh, dw = (bh + 1) // 2, (bw + 1) // 2
+    stride = _FILL_STRIDE[1]
+    for y in range(dh):
+        for x in range(dw):
+            q = y * stride + x
+            s_w = zero
             for c in range(nc):
-                lvl_img[0, y, x, c] = _load(values, y0 + y, x0 + x, c) if valid else F32(0.0)
-    sh, sw = bh, bw
-    for lv in range(1, FILL_LEVELS + 1):
+                lvl_img[q, c] = 0.0
+            for yy in range(2 * y, min(2 * y + 2, bh)):
+                for xx in range(2 * x, min(2 * x + 2, bw)):
+                    valid = not holes[y0 + yy, x0 + xx]
+                    s_w += one if valid else zero
+                    for c in range(nc):
+                        lvl_img[q, c] += _load(values, y0 + yy, x0 + xx, c) if valid else zero
+            div = max(s_w, one)
+            for c in range(nc):
+                lvl_img[q, c] = lvl_img[q, c] / div
+            lvl_wt[q] = min(s_w, one)
+    sh, sw = dh, dw
+    for lv in range(2, FILL_LEVELS + 1):
         dh, dw = (sh + 1) // 2, (sw + 1) // 2
+        so, ss = _FILL_OFFSET[lv - 1], _FILL_STRIDE[lv - 1]
+        do, ds = _FILL_OFFSET[lv], _FILL_STRIDE[lv]
         for y in range(dh):
             for x in range(dw):
-                s_w = F32(0.0)
+                q = do + y * ds + x
+                s_w = zero
                 for c in range(nc):
-                    lvl_img[lv, y, x, c] = 0.0
+                    lvl_img[q, c] = 0.0
                 for yy in range(2 * y, min(2 * y + 2, sh)):
                     for xx in range(2 * x, min(2 * x + 2, sw)):
-                        s_w += lvl_wt[lv - 1, yy, xx]
+                        p = so + yy * ss + xx
+                        s_w += lvl_wt[p]
                         for c in range(nc):
-                            lvl_img[lv, y, x, c] += lvl_img[lv - 1, yy, xx, c]
+                            lvl_img[q, c] += lvl_img[p, c]
                 div = max(s_w, one)
                 for c in range(nc):
-                    lvl_img[lv, y, x, c] = lvl_img[lv, y, x, c] / div
-                lvl_wt[lv, y, x] = min(s_w, one)
+                    lvl_img[q, c] = lvl_img[q, c] / div
+                lvl_wt[q] = min(s_w, one)
         sh, sw = dh, dw
-    grid_wt[by, bx] = lvl_wt[FILL_LEVELS, 0, 0]
+    top = _FILL_OFFSET[FILL_LEVELS]
+    grid_wt[by, bx] = lvl_wt[top]
     for c in range(nc):
-        grid[by, bx, c] = lvl_img[FILL_LEVELS, 0, 0, c]
-    if not fill_holes or lvl_wt[FILL_LEVELS, 0, 0] == 0.0:
+        grid[by, bx, c] = lvl_img[top, c]
+    if not fill_holes or lvl_wt[top] == 0.0:
         return
     for y in range(bh):
         for x in range(bw):
             if not holes[y0 + y, x0 + x]:
                 continue
             lv = 1
-            while lvl_wt[lv, y >> lv, x >> lv] == 0.0:
+            q = _FILL_OFFSET[1] + (y >> 1) * _FILL_STRIDE[1] + (x >> 1)
+            while lvl_wt[q] == 0.0:
                 lv += 1
+                q = _FILL_OFFSET[lv] + (y >> lv) * _FILL_STRIDE[lv] + (x >> lv)
             for c in range(nc):
-                _store(values, y0 + y, x0 + x, c, lvl_img[lv, y >> lv, x >> lv, c], quantize)
+                _store(values, y0 + y, x0 + x, c, lvl_img[q, c], quantize)
 
 
 @njit(inline="always", **_JIT)
@@ -325,8 +356,8 @@ def pull_push_fill(values, holes, quantize):
     grid = np.zeros((nby, nbx, nc), np.float32)
     grid_wt = np.zeros((nby, nbx), np.float32)
     for by in prange(nby):
-        lvl_img = np.empty((FILL_LEVELS + 1, FILL_BLOCK, FILL_BLOCK, nc), np.float32)
-        lvl_wt = np.empty((FILL_LEVELS + 1, FILL_BLOCK, FILL_BLOCK), np.float32)
+        lvl_img = np.empty((FILL_CELLS, nc), np.float32)
+        lvl_wt = np.empty(FILL_CELLS, np.float32)
         for bx in range(nbx):
             if pull[by, bx]:
                 _fill_block(
