@@ -221,3 +221,26 @@ def test_a_predictor_still_building_skips_ticks_and_never_blocks(
 def test_an_unknown_predictor_is_refused_by_name() -> None:
     with pytest.raises(ValueError, match=r"unknown frame predictor 'nope'; allowed: .*mpe"):
         PredictionStage("nope")
+
+
+def test_worker_thread_budget_covers_the_compiled_kernels() -> None:
+    """``WorkerConfig.threads`` limits numba's kernels too: unlimited, their threads took
+    the core the game renders on (22 frames lost in 20 s at 40 fps on 2 cores)."""
+    import threading
+
+    import numba
+
+    from server.worker import _limit_compiled_threads
+
+    seen: list[int] = []
+
+    def on_worker_thread() -> None:  # numba's limit is per thread, like a worker's loop
+        _limit_compiled_threads(1)
+        seen.append(numba.get_num_threads())
+        _limit_compiled_threads(10_000)
+        seen.append(numba.get_num_threads())
+
+    t = threading.Thread(target=on_worker_thread)
+    t.start()
+    t.join()
+    assert seen == [1, numba.config.NUMBA_NUM_THREADS]  # type: ignore[attr-defined]

@@ -34,7 +34,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fps", type=float, default=60.0)
     parser.add_argument("--upscaler", default="bilinear")
     parser.add_argument("--game-threads", type=int, default=1, help="torch threads, game")
-    parser.add_argument("--worker-threads", type=int, default=1, help="torch threads, worker")
+    parser.add_argument(
+        "--worker-threads", type=int, default=1, help="CPU threads of the worker (torch and numba)"
+    )
     parser.add_argument(
         "--frame-generation",
         choices=("off", "on", "both"),
