@@ -96,6 +96,31 @@ def _pack_rgb_row(color_src, color_words, y, packed):
         packed[row + 4 * g + 3] = c >> np.uint32(8)
 
 
+@njit(inline="always", **_JIT)
+def _pull_level(img, wt, so, ss, sh, sw, do, ds):
+    """One pull step on flat (cells, C) ``img`` / (cells,) ``wt``: the (sh, sw) level at
+    offset ``so`` with row stride ``ss`` -> its 2 x 2 sums at ``do`` with stride ``ds``
+    (zero weight outside odd edges; colour premultiplied by a weight clamped to 1)."""
+    nc = img.shape[1]
+    one = F32(1.0)
+    for y in range((sh + 1) // 2):
+        for x in range((sw + 1) // 2):
+            q = do + y * ds + x
+            s_w = F32(0.0)
+            for c in range(nc):
+                img[q, c] = 0.0
+            for yy in range(2 * y, min(2 * y + 2, sh)):
+                for xx in range(2 * x, min(2 * x + 2, sw)):
+                    p = so + yy * ss + xx
+                    s_w += wt[p]
+                    for c in range(nc):
+                        img[q, c] += img[p, c]
+            div = max(s_w, one)
+            for c in range(nc):
+                img[q, c] = img[q, c] / div
+            wt[q] = min(s_w, one)
+
+
 @njit(**_JIT)
 def _pull_push_dense(values, holes):
     """``fill.pull_push_fill`` in place on (H, W, C) float32 ``values`` over the whole pyramid.
@@ -142,24 +167,7 @@ def _pull_push_dense(values, holes):
                     img[p, c] = values[y, x, c]
     # Pull: 2 x 2 sums (zero weight outside odd edges), colour premultiplied by a weight <= 1.
     for lv in range(n_levels - 1):
-        sh, sw, so = hs[lv], ws[lv], off[lv]
-        dh, dw, do = hs[lv + 1], ws[lv + 1], off[lv + 1]
-        for y in range(dh):
-            for x in range(dw):
-                s_w = F32(0.0)
-                q = do + y * dw + x
-                for c in range(nc):
-                    img[q, c] = 0.0
-                for yy in range(2 * y, min(2 * y + 2, sh)):
-                    for xx in range(2 * x, min(2 * x + 2, sw)):
-                        p = so + yy * sw + xx
-                        s_w += wt[p]
-                        for c in range(nc):
-                            img[q, c] += img[p, c]
-                div = max(s_w, one)
-                for c in range(nc):
-                    img[q, c] = img[q, c] / div
-                wt[q] = min(s_w, one)
+        _pull_level(img, wt, off[lv], ws[lv], hs[lv], ws[lv], off[lv + 1], ws[lv + 1])
     top = off[n_levels - 1]
     for c in range(nc):
         img[top, c] = img[top, c] / max(wt[top], F32(1e-6))
@@ -245,23 +253,7 @@ def _fill_block(
     for lv in range(2, FILL_LEVELS + 1):
         dh, dw = (sh + 1) // 2, (sw + 1) // 2
         so, ss = _FILL_OFFSET[lv - 1], _FILL_STRIDE[lv - 1]
-        do, ds = _FILL_OFFSET[lv], _FILL_STRIDE[lv]
-        for y in range(dh):
-            for x in range(dw):
-                q = do + y * ds + x
-                s_w = zero
-                for c in range(nc):
-                    lvl_img[q, c] = 0.0
-                for yy in range(2 * y, min(2 * y + 2, sh)):
-                    for xx in range(2 * x, min(2 * x + 2, sw)):
-                        p = so + yy * ss + xx
-                        s_w += lvl_wt[p]
-                        for c in range(nc):
-                            lvl_img[q, c] += lvl_img[p, c]
-                div = max(s_w, one)
-                for c in range(nc):
-                    lvl_img[q, c] = lvl_img[q, c] / div
-                lvl_wt[q] = min(s_w, one)
+        _pull_level(lvl_img, lvl_wt, so, ss, sh, sw, _FILL_OFFSET[lv], _FILL_STRIDE[lv])
         sh, sw = dh, dw
     top = _FILL_OFFSET[FILL_LEVELS]
     grid_wt[by, bx] = lvl_wt[top]
