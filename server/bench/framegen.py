@@ -18,12 +18,13 @@ of rendering one frame at the same size in the same run.
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
+
+from server.progress import progress
 
 if TYPE_CHECKING:
     from upscalers.framegen import FramePredictor
@@ -98,10 +99,6 @@ def _methods(tiles: list[int], device: str) -> dict[str, Callable[[], FramePredi
     out[f"mpe{t}_no_shear"] = partial(mpe, t, shear=False)
     out[f"mpe{t}_none"] = partial(mpe, t, tensile=False, shear=False)
     return out
-
-
-def _progress(text: str) -> None:
-    print(text, file=sys.stderr, flush=True)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -202,7 +199,7 @@ def run(args: argparse.Namespace) -> int:
                 case.holes.append(pred.hole_share)
                 if len(case.flip) < args.flip_frames and j >= 1:
                     case.flip.append(metrics.flip(truth.color, shown))
-            _progress(f"{scene}: frame pair {j + 1}/{args.frames}")
+            progress(f"{scene}: frame pair {j + 1}/{args.frames}")
         render_ms[scene] = samples
         sky_share[scene] = float(np.mean(sky)) if sky else 0.0
 

@@ -27,12 +27,13 @@ one of them.
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
+
+from server.progress import elapsed_and_left, progress
 
 if TYPE_CHECKING:
     import numpy as np
@@ -125,10 +126,6 @@ def parse_cases(args: argparse.Namespace) -> list[CaseSpec]:
     if len(set(labels)) != len(labels):
         raise ValueError(f"a case is listed twice: {labels}")
     return cases
-
-
-def _progress(text: str) -> None:
-    print(text, file=sys.stderr, flush=True)
 
 
 def _psnr(reference: U8, test: U8) -> float:
@@ -397,7 +394,7 @@ def run(args: argparse.Namespace, load: LoadNetwork | None = None) -> int:
         runs, refs = run_scene(scene, scene_cases, load, args, display)
         for r in runs:
             case = report.add_case(**summarize(scene, r, flops))
-            _progress(
+            progress(
                 f"  {case['case']:14} skipped {case['cached_frames']:3d}/{case['frames']}  "
                 f"speedup {case['speedup']:.2f}  PSNR {case['psnr_db']:.2f} "
                 f"(worst {case['worst_psnr_db']:.2f})  FLIP {_fmt_opt(case['flip'])}"
@@ -416,10 +413,10 @@ def run(args: argparse.Namespace, load: LoadNetwork | None = None) -> int:
                 gt_ssim=_mean(ref.gt_ssim),
                 flops_full=next(f for (net, _), (f, _c) in flops.items() if net == ref.network),
             )
-        elapsed = time.monotonic() - started
-        _progress(
+        elapsed, left = elapsed_and_left(n, len(scenes), started)
+        progress(
             f"[{n}/{len(scenes)}] {scene}: {len(runs)} cases "
-            f"({elapsed:.0f} s elapsed, ~{elapsed / n * (len(scenes) - n):.0f} s left)"
+            f"({elapsed:.0f} s elapsed, ~{left:.0f} s left)"
         )
     report.config["load_average_end"] = _loadavg()
     checks = must_show_checks(report.cases)

@@ -20,7 +20,6 @@ per frame on a CPU, is computed on the last ``--flip-frames`` of them.
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -38,6 +37,7 @@ from server.eval.methods import (
     sharpness_variants,
 )
 from server.frame import RenderFrame, Size
+from server.progress import elapsed_and_left, progress
 from server.render.renderer import Renderer, RenderTargets
 from server.render.scenes import SCENE_NAMES, make_scene, parse_scene_list
 from upscalers import metrics
@@ -235,12 +235,10 @@ def run(args: argparse.Namespace) -> int:
                     flicker=metrics.flicker(r.errors),
                     worst_psnr_db=min(r.psnr) if r.psnr else None,
                 )
-            elapsed = time.monotonic() - started
-            eta = elapsed / step * (total_steps - step)
-            print(
+            elapsed, eta = elapsed_and_left(step, total_steps, started)
+            progress(
                 f"[{step}/{total_steps}] {scene} {scale:g}x done "
-                f"({elapsed:.0f} s elapsed, ~{eta:.0f} s left)",
-                file=sys.stderr,
+                f"({elapsed:.0f} s elapsed, ~{eta:.0f} s left)"
             )
     add_ratios(report)
     checks = must_show_checks(report.cases)

@@ -28,6 +28,8 @@ import numpy as np
 import numpy.typing as npt
 
 from server.frame import Size
+from server.progress import elapsed_and_left
+from server.progress import progress as report_progress
 from server.render.renderer import Renderer
 from server.render.scenes import SCENE_NAMES
 
@@ -131,13 +133,10 @@ def generate(spec: DatasetSpec, progress: bool = True) -> Dataset:
             t = t0 + (n - nt + k) * dt
             data.truth[i, k] = renderer.render_ground_truth(t, display, spec.supersample)
         if progress:
-            elapsed = time.monotonic() - started
-            eta = elapsed / (i + 1) * (spec.sequences - i - 1)
-            print(
+            elapsed, eta = elapsed_and_left(i + 1, spec.sequences, started)
+            report_progress(
                 f"[data] sequence {i + 1}/{spec.sequences} ({scene}) "
-                f"{elapsed:.0f} s, eta {eta:.0f} s",
-                file=sys.stderr,
-                flush=True,
+                f"{elapsed:.0f} s, eta {eta:.0f} s"
             )
     return data
 

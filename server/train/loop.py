@@ -14,7 +14,6 @@ generators seeded here, and torch's CPU kernels are deterministic for these ops.
 from __future__ import annotations
 
 import math
-import sys
 import time
 from dataclasses import dataclass
 
@@ -23,6 +22,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from server.progress import elapsed_and_left
+from server.progress import progress as report_progress
 from server.train.dataset import Dataset
 from upscalers.neural.features import FrameTensors, History, build_features
 from upscalers.neural.network import predict
@@ -148,13 +149,10 @@ def train(
         recent.append(float(loss.detach()))
         recent = recent[-50:]
         if progress and (step % cfg.log_every == 0 or step == cfg.steps - 1):
-            elapsed = time.monotonic() - started
-            eta = elapsed / (step + 1) * (cfg.steps - step - 1)
-            print(
+            elapsed, eta = elapsed_and_left(step + 1, cfg.steps, started)
+            report_progress(
                 f"[train] step {step + 1}/{cfg.steps} loss {np.mean(recent):.4f} "
-                f"lr {_lr_at(step, cfg):.2e} {elapsed:.0f} s, eta {eta:.0f} s",
-                file=sys.stderr,
-                flush=True,
+                f"lr {_lr_at(step, cfg):.2e} {elapsed:.0f} s, eta {eta:.0f} s"
             )
     else:
         step = cfg.steps
