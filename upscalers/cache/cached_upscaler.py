@@ -79,6 +79,7 @@ class CachedUpscaler:
         self.upscaler = upscaler
         self.policy = make_policy(policy) if isinstance(policy, str) else policy
         self.cache = LayerCache(upscaler.model, config)
+        self.cache.probe_inputs = self.policy.decides_late
         self.stats = CacheStats()
         self._reference: npt.NDArray[np.uint8] | None = None
         self._since_refresh = 0
@@ -126,7 +127,9 @@ class CachedUpscaler:
         if not signals.finite:
             y = self._run_nonfinite(x)
         elif refresh:
-            y = self._refresh(x, frame, signals, forced=signals.must_refresh)
+            y = self._refresh(x, frame, forced=signals.must_refresh)
+        elif self.policy.decides_late:
+            y = self._reuse_or_refresh(x, frame)
         else:
             y = self._reuse(x, frame)
         self.upscaler.remember(y)
@@ -148,38 +151,48 @@ class CachedUpscaler:
         self.last_action = "nonfinite"
         return y
 
-    def _refresh(
-        self, x: torch.Tensor, frame: RenderFrame, signals: FrameSignals, forced: bool
-    ) -> torch.Tensor:
-        stale: torch.Tensor | None = None
-        if self.policy.wants_audit and not forced:
-            with self.cache.using(CacheMode.REUSE):
-                stale = self.upscaler.run(x)
-            if not self.cache.last_forward_reused:
-                stale = None  # the cache could not serve it: nothing to learn from
+    def _refresh(self, x: torch.Tensor, frame: RenderFrame, forced: bool) -> torch.Tensor:
         with self.cache.using(CacheMode.REFRESH):
             y = self.upscaler.run(x)
-        if stale is not None:
-            self.stats.audits += 1
-            self.policy.observe_audit(signals, psnr_db(y, stale))
+        self._count_refresh(frame, forced)
+        return y
+
+    def _count_refresh(self, frame: RenderFrame, forced: bool) -> None:
         self._kept_reference(frame)
         self.stats.refreshes += 1
         self.stats.forced += int(forced)
         self.last_action = "forced" if forced else "refresh"
-        return y
 
     def _reuse(self, x: torch.Tensor, frame: RenderFrame) -> torch.Tensor:
         with self.cache.using(CacheMode.REUSE):
             y = self.upscaler.run(x)
+        self._count_reuse(frame)
+        return y
+
+    def _count_reuse(self, frame: RenderFrame) -> None:
         if self.cache.last_forward_reused:
             self._since_refresh += 1
             self.stats.cached += 1
             self.last_action = "cached"
         else:  # the cache fell back to running the branches: that was a refresh
-            self._kept_reference(frame)
-            self.stats.refreshes += 1
-            self.stats.forced += 1
-            self.last_action = "forced"
+            self._count_refresh(frame, forced=True)
+
+    def _reuse_or_refresh(self, x: torch.Tensor, frame: RenderFrame) -> torch.Tensor:
+        """A late-deciding policy: run the cached path, then let the policy look at the
+        cache points' input delta; on a refresh, the discarded cached output is the
+        audit (its error against the full output, at that delta)."""
+        with self.cache.using(CacheMode.REUSE):
+            stale = self.upscaler.run(x)
+        if not self.cache.last_forward_reused:
+            self._count_reuse(frame)  # the cache could not serve it: already a refresh
+            return stale
+        delta = self.cache.input_delta()
+        if not self.policy.refresh_late(delta):
+            self._count_reuse(frame)
+            return stale
+        y = self._refresh(x, frame, forced=False)
+        self.stats.audits += 1
+        self.policy.observe_audit(delta, psnr_db(y, stale))
         return y
 
     def _kept_reference(self, frame: RenderFrame) -> None:

@@ -22,6 +22,7 @@ the next reuse falls back to running it.
 from __future__ import annotations
 
 import enum
+import math
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -83,6 +84,10 @@ class CachedBranch(nn.Module):
         object.__setattr__(self, "_cache", cache)
         self.entry: KeptOutput | None = None
         self.last_action = BranchAction.NOT_RUN
+        # With LayerCache.probe_inputs: a subsample of this frame's branch input and of
+        # the one the kept output was computed from (see LayerCache.input_delta).
+        self.input_probe: torch.Tensor | None = None
+        self.kept_probe: torch.Tensor | None = None
 
     @property
     def kept(self) -> torch.Tensor | None:
@@ -90,6 +95,8 @@ class CachedBranch(nn.Module):
 
     def forward(self, *args: Any, **kwargs: Any) -> Any:
         mode: CacheMode = self._cache.mode
+        if self._cache.probe_inputs:
+            self.input_probe = _probe(args)
         if mode is CacheMode.REUSE and self._usable(_InputSignature.of(args, kwargs)):
             self.last_action = BranchAction.REUSED
             return self.kept
@@ -125,13 +132,36 @@ class CachedBranch(nn.Module):
         if version is None:
             kept = kept.clone()
         self.entry = KeptOutput(kept, signature, version)
+        self.kept_probe = self.input_probe
 
     def clear(self) -> None:
         self.entry = None
+        self.kept_probe = None
 
     @property
     def nbytes(self) -> int:
         return 0 if self.kept is None else self.kept.numel() * self.kept.element_size()
+
+
+# Every PROBE_STRIDE-th row and column of a branch input: 1/16 of a level-1 input
+# of the U-Net (12 x 360 x 640) is 0.17 M values, a fraction of a millisecond.
+PROBE_STRIDE = 4
+
+
+def _probe(args: tuple[Any, ...]) -> torch.Tensor | None:
+    first = next((a for a in args if isinstance(a, torch.Tensor)), None)
+    if first is None:
+        return None
+    return first.detach()[..., ::PROBE_STRIDE, ::PROBE_STRIDE].float().clone()
+
+
+def probe_delta(current: torch.Tensor | None, kept: torch.Tensor | None) -> float:
+    """ReFrame's SMAPE, 2 mean|x - k| / mean(|x| + |k|), of two probes; inf when one is
+    missing or the shapes differ, 0 for two all-zero probes."""
+    if current is None or kept is None or current.shape != kept.shape:
+        return math.inf
+    den = float((current.abs() + kept.abs()).mean())
+    return 0.0 if den == 0.0 else 2.0 * float((current - kept).abs().mean()) / den
 
 
 def all_finite(t: torch.Tensor) -> bool:
@@ -161,6 +191,8 @@ class LayerCache:
         self.points = cache_points(model, config)
         self.config = config if config is not None else default_config_of(model)
         self.mode = CacheMode.REFRESH
+        # Whether branches keep input probes (only a policy that reads input_delta pays).
+        self.probe_inputs = False
         self.branches: dict[str, CachedBranch] = {}
         for point in self.points:
             parent_name, _, attr = point.rpartition(".")
@@ -223,6 +255,17 @@ class LayerCache:
     def nbytes(self) -> int:
         """Memory held by the kept outputs."""
         return sum(w.nbytes for w in self.branches.values())
+
+    def input_delta(self) -> float:
+        """How far the cached branches' inputs of the last forward are from the inputs
+        their kept outputs were computed from: the largest SMAPE over the branches
+        (``probe_delta``, on every 4th row and column). It is the input delta measured
+        where the cache acts, so it sees what the colour's delta cannot: a change of
+        history, depth or motion, and what the shallow layers make of them. Needs
+        ``probe_inputs``; inf when a branch has nothing to compare."""
+        if not self.branches:
+            return math.inf
+        return max(probe_delta(b.input_probe, b.kept_probe) for b in self.branches.values())
 
     @property
     def last_forward_reused(self) -> bool:

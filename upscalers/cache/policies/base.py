@@ -15,8 +15,9 @@ class CachePolicy(ABC):
     policy's own rule, so a cut refreshes on the very frame that carries it."""
 
     name: str = "policy"
-    # Whether the policy learns from audits (see observe_audit).
-    wants_audit: bool = False
+    # A late-deciding policy is asked again after the cached path has run, with the
+    # input delta at the cache points (refresh_late), and learns from audits.
+    decides_late: bool = False
 
     def decide(self, signals: FrameSignals) -> bool:
         if signals.must_refresh:
@@ -35,9 +36,15 @@ class CachePolicy(ABC):
         """A new stream: forget everything learned or counted."""
         self._restart()
 
-    def observe_audit(self, signals: FrameSignals, stale_psnr_db: float) -> None:  # noqa: B027
-        """On a refresh the policy chose (not a forced one), the PSNR of what the stale
-        cache would have given against the full output; only called if wants_audit."""
+    def refresh_late(self, input_delta: float) -> bool:
+        """For a frame the early rule let the cache serve, after the cached path ran:
+        refresh after all? ``input_delta`` is ``LayerCache.input_delta()``. Only
+        asked of a policy that ``decides_late``."""
+        return False
+
+    def observe_audit(self, input_delta: float, stale_psnr_db: float) -> None:  # noqa: B027
+        """After a late refresh: the PSNR of the cached output (already computed, then
+        discarded) against the full one, and the input delta it was cached at."""
 
     def describe(self) -> str:
         return self.name
