@@ -146,28 +146,36 @@ def test_motion_policy_accumulates_since_refresh() -> None:
     assert got == [False, False, True, False, False, True]
 
 
-def test_budget_policy_lowers_on_a_bad_audit_and_grows_slowly_on_good_ones() -> None:
-    ref = torch.ones(1, 3, 4, 4)
-    p = BudgetPolicy(35.0, start_tau=0.15, margin_db=1.0, window=3, max_growth=1.5)
-    over = _signals(ref * 1.2, ref)  # SMAPE 0.1818 > tau: the policy refreshes here
-    assert p.decide(over)
-    # The stale path would have given 30 dB: 6 dB short of 36 -> tau = s * 10**(-6/20).
-    p.observe_audit(over, 30.0)
-    assert p.tau == pytest.approx(over.smape * 10 ** (-6 / 20))
-    low = p.tau
-    # Far better than needed: allowed to grow, but only by 1.5x per audit, and the
-    # bad estimate still in the window caps it.
-    p.observe_audit(over, 60.0)
-    assert p.tau == pytest.approx(low)
-    p.observe_audit(over, 60.0)
-    p.observe_audit(over, 60.0)  # the bad estimate has left the window of 3
-    assert p.tau == pytest.approx(low * 1.5)
-    p.observe_audit(over, math.inf)
-    assert p.tau == pytest.approx(low * 1.5 * 1.5)
-    p.observe_audit(over, float("nan"))  # ignored
-    assert p.audits == 5
+def test_budget_policy_sets_its_run_from_the_audits() -> None:
+    p = BudgetPolicy(35.0, start_run=4, margin_db=1.0, db_per_doubling=3.0)
+    x = torch.ones(1, 3, 4, 4)
+
+    def late(run: int, delta: float = 0.1) -> bool:
+        assert not p.decide(_signals(x * 1.9, x, since=run))  # colour: not its signal
+        return p.refresh_late(delta)
+
+    assert not late(4) and late(5)  # serves 4 cached frames in a row, then refreshes
+    assert late(1, delta=0.6) and late(1, math.inf) and late(1, math.nan)  # structural
+    late(1, delta=0.6)
+    p.observe_audit(0.6, 10.0)  # a structural refresh's audit does not move the run
+    assert p.run_limit == 4 and p.audits == 1
+    late(5)
+    p.observe_audit(0.1, 33.0)  # 3 dB short at run 5: half the run, and below 5
+    assert p.run_limit == 2
+    late(3)
+    p.observe_audit(0.1, 37.5)  # 1.5 dB headroom at run 3: 3 * 2 ** 0.5 -> 4
+    assert p.run_limit == 4
+    late(5)
+    p.observe_audit(0.1, math.inf)  # identical: at most doubled
+    assert p.run_limit == 10
+    late(11)
+    p.observe_audit(0.1, 35.5)  # inside the margin: 11 * 2 ** (-0.5 / 3) -> 9
+    assert p.run_limit == 9
+    late(11)
+    p.observe_audit(0.1, float("nan"))  # counted, learns nothing
+    assert p.run_limit == 9 and p.audits == 6
     p.reset()
-    assert p.tau == 0.15 and p.audits == 0
+    assert p.run_limit == 4 and p.audits == 0
 
 
 def test_psnr_of_tensors() -> None:

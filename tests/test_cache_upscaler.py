@@ -11,6 +11,7 @@ from tests.cache_toys import ToyNested, ToyNeuralUpscaler, ToyUNet, display_of, 
 from upscalers.cache.cached_upscaler import CachedUpscaler
 from upscalers.cache.layer_cache import CachedBranch
 from upscalers.cache.policies import CachePolicy, make_policy
+from upscalers.cache.policies.budget import BudgetPolicy
 from upscalers.cache.signals import FrameSignals
 
 SIZE = Size(32, 24)
@@ -89,7 +90,7 @@ ADAPTIVE = ["delta_h", "delta_l", "motion", "budget", "delta@0.5", "motion@100",
 @pytest.mark.parametrize("name", ADAPTIVE)
 def test_scene_cut_forces_a_refresh_on_the_very_next_frame(name: str) -> None:
     plain, cached = _pair(policy=name, feedback=False)
-    for frame in _frames(4, shift=0):  # still frames: cached after the first
+    for frame in _frames(3, shift=0):  # still frames: cached after the first
         cached.upscale(frame, DISPLAY)
         plain.upscale(frame, DISPLAY)
     assert cached.last_action == "cached"
@@ -151,13 +152,65 @@ def test_resolution_change_invalidates_the_cache() -> None:
 
 
 def test_budget_policy_audits_its_own_refreshes() -> None:
-    policy = make_policy("budget@150")  # a budget no stale output meets: tau must fall
+    policy = make_policy("budget@150")  # a budget no stale output meets: the run must shrink
     _, cached = _pair(policy=policy)
-    start = policy.tau  # type: ignore[attr-defined]
+    start = policy.run_limit  # type: ignore[attr-defined]
     for frame in _frames(12, shift=2):
         cached.upscale(frame, DISPLAY)
     assert cached.stats.audits >= 1
-    assert policy.tau < start  # type: ignore[attr-defined]
+    assert policy.run_limit < start  # type: ignore[attr-defined]
+
+
+def test_a_late_refresh_gives_the_full_output_and_audits_the_cached_one() -> None:
+    """Run limit 0: every frame the cache could serve is refreshed after the cached path
+    ran, so every output equals the uncached network's, bit for bit, and every such
+    frame is one audit."""
+    plain, cached = _pair(policy=BudgetPolicy(150.0, start_run=0))
+    for frame in _frames(6, shift=2):
+        assert torch.equal(cached.upscale(frame, DISPLAY), plain.upscale(frame, DISPLAY))
+    assert cached.stats.refreshes == 6 and cached.stats.forced == 1
+    assert cached.stats.audits == 5 and cached.stats.cached == 0
+
+
+def test_budget_policy_lengthens_its_runs_when_the_audits_have_headroom() -> None:
+    policy = BudgetPolicy(10.0, start_run=2)  # every stale output meets 10 dB
+    _, cached = _pair(policy=policy)
+    actions = []
+    for frame in _frames(14, shift=0):
+        cached.upscale(frame, DISPLAY)
+        actions.append(cached.last_action[0])
+    # Run 3 > 2: audit at run 3, far above budget -> at most doubled (6); then the
+    # audit at run 7 -> 14.
+    assert "".join(actions) == "fccr" + "c" * 6 + "r" + "ccc"
+    assert policy.run_limit == 14 and cached.stats.audits == 2
+
+
+def test_budget_policy_refreshes_on_a_structural_change_within_its_run() -> None:
+    policy = BudgetPolicy(10.0, start_run=100, structure_limit=0.2)
+    _, cached = _pair(policy=policy, feedback=False)
+    for frame in _frames(3, shift=0):
+        cached.upscale(frame, DISPLAY)
+    assert cached.last_action == "cached"
+    # Another picture without a cut flag: the branch input changes wholesale.
+    cached.upscale(make_frame(3, SIZE, shift=5, seed=11), DISPLAY)
+    assert cached.cache.input_delta() == 0.0  # measured against the new kept input
+    assert cached.last_action == "refresh" and policy.run_limit == 100
+
+
+def test_input_delta_compares_the_branch_input_with_the_kept_one() -> None:
+    _, cached = _pair(policy=Never(), feedback=False)
+    assert cached.cache.probe_inputs is False  # only a late-deciding policy pays for it
+    cached.cache.probe_inputs = True
+    assert cached.cache.input_delta() == float("inf")  # nothing kept yet
+    frame = make_frame(0, SIZE, shift=0)
+    cached.upscale(frame, DISPLAY)
+    assert cached.cache.input_delta() == 0.0  # the refresh frame against itself
+    cached.upscale(make_frame(1, SIZE, shift=0), DISPLAY)  # same picture
+    assert cached.cache.input_delta() == 0.0
+    cached.upscale(make_frame(2, SIZE, shift=3, seed=5), DISPLAY)
+    assert cached.last_action == "cached" and cached.cache.input_delta() > 0.01
+    cached.cache.invalidate()
+    assert cached.cache.input_delta() == float("inf")
 
 
 def test_close_restores_the_network() -> None:
@@ -174,12 +227,13 @@ def test_reset_forgets_the_cache_but_not_what_the_policy_learned() -> None:
     _, cached = _pair(policy=policy)
     for frame in _frames(8, shift=2):
         cached.upscale(frame, DISPLAY)
-    tau = policy.tau  # type: ignore[attr-defined]
+    limit = policy.run_limit  # type: ignore[attr-defined]
+    assert policy.audits > 0  # type: ignore[attr-defined]
     cached.reset()
     assert not cached.cache.warm
     cached.upscale(make_frame(9, SIZE), DISPLAY)
     assert cached.last_action == "forced"
-    assert policy.tau == tau  # type: ignore[attr-defined]
+    assert policy.run_limit == limit  # type: ignore[attr-defined]
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
