@@ -85,7 +85,13 @@ def test_bench_runs_and_reports(tmp_path: Path, capsys: pytest.CaptureFixture[st
 
 
 def _case(scene: str, case: str, group: str, **v: object) -> dict[str, object]:
-    base: dict[str, object] = {"scene": scene, "case": case, "group": group, "flip": 0.01}
+    base: dict[str, object] = {
+        "scene": scene,
+        "case": case,
+        "group": group,
+        "flip": 0.01,
+        "speedup": 1.0,
+    }
     base.update(v)
     return base
 
@@ -125,6 +131,22 @@ def test_budget_check_compares_with_the_best_fixed_threshold_that_holds() -> Non
     assert [ok for _, ok in budget_comparison(cases)[1]] == [False, True]
     cases[0]["cached_frames"] = cases[3]["cached_frames"] = 3  # 6 < 8
     assert [ok for _, ok in budget_comparison(cases)[1]] == [False, False]
+
+
+def test_budget_check_also_compares_with_the_fixed_schedules_that_hold() -> None:
+    cases = [
+        _case(s, "budget", "policy", budget_db=35.0, worst_psnr_db=36.0, cached_frames=10)
+        for s in ("a", "b")
+    ]
+    cases += [_case(s, "every_2", "policy", worst_psnr_db=37.0, cached_frames=6) for s in "ab"]
+    cases += [_case(s, "every_5", "policy", worst_psnr_db=33.0, cached_frames=9) for s in "ab"]
+    text, checks = budget_comparison(cases)
+    assert "| every_5 | 18 | 33.00 | no (a, b) |" in text
+    # No threshold in the run: that check falls back to "held"; every_2 is the best holder.
+    assert [ok for _, ok in checks] == [True, True, True]
+    assert "(every_2: 12)" in checks[2][0]
+    cases[2]["cached_frames"] = cases[3]["cached_frames"] = 11  # 22 > 20
+    assert [ok for _, ok in budget_comparison(cases)[1]] == [True, True, False]
 
 
 def test_must_show_speed_and_flip_targets() -> None:
