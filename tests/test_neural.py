@@ -15,20 +15,11 @@ from server.render.renderer import Renderer
 from upscalers import metrics, registry
 from upscalers.neural import conv_flops, load
 from upscalers.neural.features import (
-    HISTORY_VALID_CHANNEL,
-    WARPED_HISTORY_START,
     bilinear_phases,
     feature_channels,
     warp_history,
 )
-from upscalers.neural.network import (
-    HEADS,
-    build_model,
-    head_of,
-    load_checkpoint,
-    predict,
-    save_checkpoint,
-)
+from upscalers.neural.network import build_model, predict
 from upscalers.neural.upscaler import NeuralUpscaler, UNetUpscaler
 from upscalers.output import to_uint8
 
@@ -59,47 +50,17 @@ def fresh(name: str) -> NeuralUpscaler:
 # -- features -------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("head", HEADS)
-def test_untrained_network_without_history_is_exactly_bilinear(head: str) -> None:
-    """The residual starts at zero and the blend weight is 0 where there is no valid
-    history, so both heads must give F.interpolate's bilinear upsampling."""
+def test_untrained_network_is_exactly_bilinear() -> None:
+    """The residual starts at zero, so the bilinear phases must equal F.interpolate."""
     torch.manual_seed(0)
     color = torch.rand(1, 3, 13, 17)
     feats = torch.zeros(1, feature_channels(), 13, 17)
     feats[:, :3] = color
-    feats[:, WARPED_HISTORY_START:] = torch.rand(1, 12, 13, 17)  # must not leak in
     for name in NETWORKS:
-        out = predict(build_model(name, head=head), feats, 2)
+        out = predict(build_model(name), feats, 2)
         ref = F.interpolate(color, scale_factor=2.0, mode="bilinear", align_corners=False)
         torch.testing.assert_close(out, ref.clamp(0, 1), atol=1e-6, rtol=0)
     assert bilinear_phases(color, 2).shape == (1, 12, 13, 17)
-
-
-def test_blend_head_mixes_the_warped_history_where_it_is_valid() -> None:
-    """Untrained blend head: logit 0, so a = 0.5 where history is valid and 0 where it
-    is not; the history planes are in pixel_unshuffle order like the output."""
-    torch.manual_seed(3)
-    color = torch.rand(1, 3, 8, 10)
-    history = torch.rand(1, 3, 16, 20)
-    feats = torch.zeros(1, feature_channels(), 8, 10)
-    feats[:, :3] = color
-    feats[:, WARPED_HISTORY_START:] = F.pixel_unshuffle(history, 2)
-    feats[:, HISTORY_VALID_CHANNEL, :, :5] = 1.0  # left half valid
-    out = predict(build_model("unet", head="blend"), feats, 2)
-    base = F.interpolate(color, scale_factor=2.0, mode="bilinear", align_corners=False)
-    torch.testing.assert_close(out[..., :10], (0.5 * (base + history))[..., :10])
-    torch.testing.assert_close(out[..., 10:], base[..., 10:])
-
-
-def test_checkpoint_keeps_the_head_and_old_ones_read_as_residual(tmp_path: Path) -> None:
-    for head in HEADS:
-        save_checkpoint(tmp_path / "n.pt", "unet", build_model("unet", head=head), 2, {})
-        assert head_of(load_checkpoint(tmp_path / "n.pt")[1]) == head
-    ckpt = torch.load(tmp_path / "n.pt", weights_only=True)
-    del ckpt["head"]  # what the first shipped checkpoints look like
-    ckpt["state_dict"] = build_model("unet", head="residual").state_dict()
-    torch.save(ckpt, tmp_path / "old.pt")
-    assert head_of(load_checkpoint(tmp_path / "old.pt")[1]) == "residual"
 
 
 def test_jittered_base_samples_where_the_frame_sampled() -> None:

@@ -43,13 +43,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--model", required=True, choices=("unet", "unetpp"), help="network to train"
     )
-    parser.add_argument(
-        "--head",
-        choices=("blend", "residual"),
-        default="blend",
-        help="output head: blend (learnt accumulation of the warped history, the default) "
-        "or residual (bilinear plus residual only; the first shipped networks)",
-    )
     parser.add_argument("--seed", type=int, default=0, help="seeds data, crops and weights")
     parser.add_argument("--steps", type=_positive_int, default=1500, help="optimizer steps")
     parser.add_argument(
@@ -126,7 +119,7 @@ def run(args: argparse.Namespace) -> int:
     data = load_or_generate(spec, args.data_dir)
     data_s = time.monotonic() - started
 
-    model = build_model(args.model, scale, head=args.head)
+    model = build_model(args.model, scale)
     model = with_memory_format(model, torch.channels_last)
     cfg = TrainConfig(
         steps=args.steps,
@@ -148,7 +141,6 @@ def run(args: argparse.Namespace) -> int:
     meta = {
         "command": "upcast train " + shlex.join(sys.argv[2:] if len(sys.argv) > 2 else []),
         "seed": args.seed,
-        "head": args.head,
         "steps": result.steps_done,
         "steps_planned": cfg.steps,
         "stopped_early": result.stopped_early,
