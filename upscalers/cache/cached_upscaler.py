@@ -4,8 +4,10 @@ Per frame: build the network input, ask the policy "refresh now?", run the
 network in refresh or reuse mode, and hand the output back to the upscaler as
 its history. A policy that ``decides_late`` (the budget policy) is asked a
 second time after the reuse pass, with the cache points' input delta; if it
-then refreshes, the reuse output it discards is an audit of the cache's error. What the wrapped upscaler provides (``NeuralUpscalerLike``) is the
-contract of upscalers/neural: ``model``, ``features``, ``run``, ``remember``,
+then refreshes, the reuse output it discards is an audit of the cache's error.
+
+What the wrapped upscaler provides (``NeuralUpscalerLike``) is the contract of
+upscalers/neural: ``model``, ``features``, ``run``, ``remember``,
 ``reset``, and optionally ``to_display`` (network image -> display size).
 
 Safety rules it adds to any policy's answer:
