@@ -10,7 +10,7 @@ import pytest
 
 from server.cli import main
 from server.eval.methods import compiled_variants, parse_method
-from server.eval.upscalers import _frames_per_method, must_show_checks
+from server.eval.upscalers import _frames_per_method, mip_bias_for, must_show_checks
 from server.frame import Size
 from upscalers import metrics
 
@@ -120,7 +120,7 @@ def test_spatial_methods_get_unjittered_frames_temporal_jittered() -> None:
     # What the pipeline sends: the game jitters only for temporal upscalers.
     times = [0.0, 1 / 60, 2 / 60]
     specs = [parse_method("bicubic"), parse_method("temporal")]
-    frames = _frames_per_method("static", Size(32, 18), 2.0, times, specs)
+    frames = _frames_per_method("static", Size(32, 18), 2.0, times, specs, 0.0)
     assert all(f.meta.jitter == (0.0, 0.0) for f in frames["bicubic"])
     assert any(f.meta.jitter != (0.0, 0.0) for f in frames["temporal"])
     # Same scene at the same times: the unjittered and jittered renders stay close.
@@ -128,6 +128,29 @@ def test_spatial_methods_get_unjittered_frames_temporal_jittered() -> None:
         frames["bicubic"][2].color.astype(int) - frames["temporal"][2].color.astype(int)
     ).mean()
     assert diff < 20
+
+
+def test_mip_bias_auto_is_the_display_mip_and_sharpens_the_render() -> None:
+    assert mip_bias_for("auto", Size(640, 360), Size(1280, 720)) == -1.0
+    assert mip_bias_for("-0.5", Size(640, 360), Size(1280, 720)) == -0.5
+    for bad in ("sharp", "nan", "inf"):
+        with pytest.raises(ValueError, match="mip-bias"):
+            mip_bias_for(bad, Size(640, 360), Size(1280, 720))
+    specs = [parse_method("bicubic")]
+    plain = _frames_per_method("static", Size(160, 90), 2.0, [0.0], specs, 0.0)["bicubic"][0]
+    biased = _frames_per_method("static", Size(160, 90), 2.0, [0.0], specs, -1.0)["bicubic"][0]
+
+    # A finer mip keeps more texture contrast: neighbouring pixels differ more.
+    def detail(c: np.ndarray) -> float:
+        return float(np.abs(np.diff(c.astype(np.float32), axis=1)).mean())
+
+    assert detail(biased.color) > 1.1 * detail(plain.color)
+    assert np.array_equal(plain.depth, biased.depth)  # geometry is the same
+
+
+def test_eval_refuses_a_bad_mip_bias(tmp_path: Path) -> None:
+    with pytest.raises(SystemExit, match="mip-bias"):
+        main(["eval", "upscalers", "--json", str(tmp_path / "x.json"), "--mip-bias", "x"])
 
 
 def test_method_labels_carry_rcas_sharpness() -> None:

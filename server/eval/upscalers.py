@@ -20,6 +20,7 @@ per frame on a CPU, is computed on the last ``--flip-frames`` of them.
 from __future__ import annotations
 
 import argparse
+import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -74,6 +75,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="comma-separated RCAS stops; adds methods easu_rcas@S (the sharpness sweep)",
     )
     parser.add_argument(
+        "--mip-bias",
+        default="0",
+        help="texture LOD bias of the render-size frames: a number, or 'auto' for "
+        "log2(render / display) (-1 at 2x), what FSR 1's and FSR 2's integration guides and "
+        "engines' resolution scaling apply; 0 (the default) picks the mip for the render size, "
+        "as the game does today, while the ground truth picks it for the display size",
+    )
+    parser.add_argument(
         "--compile",
         action="store_true",
         help="add METHOD+compiled (torch.compile path) for every method that has one",
@@ -110,7 +119,12 @@ def _parse(args: argparse.Namespace) -> tuple[list[str], list[float], list[Metho
         raise SystemExit("--measure-from must be below --frames")
     if args.frames <= WARMUP_CALLS:
         raise SystemExit(f"--frames must be above {WARMUP_CALLS} (the untimed warm-up calls)")
-    return scenes, scales, methods, Size.parse(args.display_size)
+    display = Size.parse(args.display_size)
+    try:
+        mip_bias_for(args.mip_bias, display, display)  # a bad value fails before rendering
+    except ValueError as e:
+        raise SystemExit(str(e)) from None
+    return scenes, scales, methods, display
 
 
 def _start_time(scene: str, measure_from: int, fps: float) -> float:
@@ -120,22 +134,41 @@ def _start_time(scene: str, measure_from: int, fps: float) -> float:
     return max(0.0, cuts[0] - (measure_from - 0.5) / fps) if cuts else 0.0
 
 
+def mip_bias_for(text: str, render: Size, display: Size) -> float:
+    """``--mip-bias``: 'auto' is log2(render / display) (the mip the display size would
+    pick), anything else a finite number."""
+    if text.strip() == "auto":
+        return math.log2(render.width / display.width)
+    try:
+        bias = float(text)
+    except ValueError:
+        raise ValueError(f"--mip-bias: expected a number or 'auto', got {text!r}") from None
+    if not math.isfinite(bias):
+        raise ValueError(f"--mip-bias must be finite, got {text!r}")
+    return bias
+
+
 def _render_frames(
-    scene: str, render: Size, scale: float, times: list[float], jitter: bool
+    scene: str, render: Size, scale: float, times: list[float], jitter: bool, mip_bias: float
 ) -> list[RenderFrame]:
-    renderer = Renderer(scene, render, scale=scale, jitter=jitter)
+    renderer = Renderer(scene, render, scale=scale, jitter=jitter, texture_lod_bias=mip_bias)
     return [renderer.render(i, t, RenderTargets.allocate(render)) for i, t in enumerate(times)]
 
 
 def _frames_per_method(
-    scene: str, render: Size, scale: float, times: list[float], methods: list[MethodSpec]
+    scene: str,
+    render: Size,
+    scale: float,
+    times: list[float],
+    methods: list[MethodSpec],
+    mip_bias: float,
 ) -> dict[str, list[RenderFrame]]:
     """What the game sends each method: jittered frames to temporal ones only."""
     runs: dict[bool, list[RenderFrame]] = {}
     out = {}
     for m in methods:
         if m.temporal not in runs:
-            runs[m.temporal] = _render_frames(scene, render, scale, times, m.temporal)
+            runs[m.temporal] = _render_frames(scene, render, scale, times, m.temporal, mip_bias)
         out[m.label] = runs[m.temporal]
     return out
 
@@ -194,6 +227,7 @@ def run(args: argparse.Namespace) -> int:
             "threads": args.threads,
             "inputs": "as in the pipeline: temporal methods get jittered renders "
             "(Halton 2,3), spatial methods unjittered ones; same times, same ground truth",
+            "mip_bias": args.mip_bias,
         },
     )
     measured = list(range(args.measure_from, args.frames))
@@ -213,7 +247,8 @@ def run(args: argparse.Namespace) -> int:
         for scale in scales:
             step += 1
             render = Size(round(display.width / scale), round(display.height / scale))
-            frames = _frames_per_method(scene, render, scale, times, methods)
+            bias = mip_bias_for(args.mip_bias, render, display)
+            frames = _frames_per_method(scene, render, scale, times, methods, bias)
             with_flip = scale in flip_scales
             results = _evaluate_scale(
                 frames, truth, methods, display, flip_from if with_flip else None
