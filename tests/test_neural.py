@@ -12,6 +12,7 @@ import torch.nn.functional as F
 
 from server.frame import RenderFrame, Size
 from server.render.renderer import Renderer
+from server.train.dataset import DatasetSpec, generate
 from upscalers import metrics, registry
 from upscalers.neural import conv_flops, load
 from upscalers.neural.features import (
@@ -310,6 +311,16 @@ def test_train_end_to_end_is_reproducible(tmp_path: Path) -> None:
     up = UNetUpscaler(device="cpu", weights=tmp_path / "a.pt")
     frame = Renderer("static", Size(32, 24), seed=0).render(0, 0.0)
     assert torch.isfinite(up.upscale(frame, Size(64, 48))).all()
+
+
+def test_dataset_mip_bias_is_part_of_its_key_and_of_its_renders() -> None:
+    plain = DatasetSpec(sequences=1, frames=3, render_size="48x32", scenes=("static",))
+    biased = dataclasses.replace(plain, texture_lod_bias=-1.0)
+    # Bias 0 keeps the key datasets had before the field existed (their caches stay valid).
+    assert "texture_lod_bias" not in plain.key() and plain.key() != biased.key()
+    a, b = generate(plain, progress=False), generate(biased, progress=False)
+    assert np.array_equal(a.depth, b.depth) and np.array_equal(a.truth, b.truth)
+    assert not np.array_equal(a.color, b.color)  # finer mips in the renders only
 
 
 @pytest.mark.parametrize(

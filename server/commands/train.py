@@ -43,6 +43,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--model", required=True, choices=("unet", "unetpp"), help="network to train"
     )
+    parser.add_argument(
+        "--mip-bias",
+        type=float,
+        default=0.0,
+        help="texture LOD bias of the training renders (-1 at 2x: the display size's mips, "
+        "what the game should render with for a temporal upscaler)",
+    )
     parser.add_argument("--seed", type=int, default=0, help="seeds data, crops and weights")
     parser.add_argument("--steps", type=_positive_int, default=1500, help="optimizer steps")
     parser.add_argument(
@@ -107,6 +114,7 @@ def run(args: argparse.Namespace) -> int:
         scale=scale,
         seed=args.seed,
         scenes=tuple(parse_scene_list(args.scenes)),
+        texture_lod_bias=args.mip_bias,
     )
     out: Path = args.out or WEIGHTS_DIR / f"{args.model}.pt"
     torch.set_num_threads(args.threads)
@@ -157,6 +165,7 @@ def run(args: argparse.Namespace) -> int:
                 "truth": spec.truth_frames,
                 "render": spec.render_size,
                 "supersample": spec.supersample,
+                "texture_lod_bias": spec.texture_lod_bias,
                 "key": spec.key(),
             }
         ),

@@ -47,9 +47,14 @@ class DatasetSpec:
     supersample: int = 3
     seed: int = 0
     scenes: tuple[str, ...] = SCENE_NAMES
+    # Texture LOD bias of the renders (the ground truth picks its own mips at display size).
+    texture_lod_bias: float = 0.0
 
     def key(self) -> str:
-        text = json.dumps(asdict(self), sort_keys=True)
+        fields = asdict(self)
+        if fields["texture_lod_bias"] == 0.0:
+            del fields["texture_lod_bias"]  # datasets cached before the field keep their key
+        text = json.dumps(fields, sort_keys=True)
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
     def check(self) -> None:
@@ -119,7 +124,14 @@ def generate(spec: DatasetSpec, progress: bool = True) -> Dataset:
     display = Size(w * s, h * s)
     started = time.monotonic()
     for i, (scene, scene_seed, t0, dt, first) in enumerate(_sequence_plan(spec)):
-        renderer = Renderer(scene, render, seed=scene_seed, jitter=True, scale=float(s))
+        renderer = Renderer(
+            scene,
+            render,
+            seed=scene_seed,
+            jitter=True,
+            scale=float(s),
+            texture_lod_bias=spec.texture_lod_bias,
+        )
         for f in range(n):
             t = t0 + f * dt
             frame = renderer.render(first + f, t, prev_t=t - dt)
@@ -129,9 +141,16 @@ def generate(spec: DatasetSpec, progress: bool = True) -> Dataset:
             data.jitter[i, f] = frame.meta.jitter
             cam = frame.meta.camera
             data.near_far[i] = (cam.near, cam.far)
+        # The truth picks its mips for the display size whatever the renders' bias, as the
+        # evaluation's ground truth does.
+        truth_renderer = (
+            renderer
+            if spec.texture_lod_bias == 0.0
+            else Renderer(scene, render, seed=scene_seed, jitter=True, scale=float(s))
+        )
         for k in range(nt):
             t = t0 + (n - nt + k) * dt
-            data.truth[i, k] = renderer.render_ground_truth(t, display, spec.supersample)
+            data.truth[i, k] = truth_renderer.render_ground_truth(t, display, spec.supersample)
         if progress:
             elapsed, eta = elapsed_and_left(i + 1, spec.sequences, started)
             report_progress(
