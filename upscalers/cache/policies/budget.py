@@ -38,8 +38,8 @@ full output on the same input. What a viewer gets, and what ``bench reframe``
 scores, is the cached run against a run that never cached, and the two differ
 by more: every cached output became the next frame's history, so the input
 itself has drifted from the uncached run's, and a refresh does not undo that.
-With a 1 dB margin the audits all passed while served frames fell 1.3-2 dB
-below a 45 dB budget; 4 dB held it on all 8 scenes. That margin was measured
+With a 1 dB margin the audits all passed while served frames fell up to 1.3 dB
+below a 45 dB budget (4 of 8 scenes); 4 dB held it on all 8 scenes. That margin was measured
 on the benchmark's scenes (seed 0); ``bench reframe --seed 1`` checks it on
 other content.
 
