@@ -32,6 +32,7 @@ import torch
 from torch import nn
 
 from upscalers.cache.points import cache_points, default_config_of
+from upscalers.cache.signals import smape
 
 
 class CacheMode(enum.Enum):
@@ -156,12 +157,11 @@ def _probe(args: tuple[Any, ...]) -> torch.Tensor | None:
 
 
 def probe_delta(current: torch.Tensor | None, kept: torch.Tensor | None) -> float:
-    """ReFrame's SMAPE, 2 mean|x - k| / mean(|x| + |k|), of two probes; inf when one is
-    missing or the shapes differ, 0 for two all-zero probes."""
+    """ReFrame's SMAPE (``signals.smape``) of two probes; inf when one is missing or the
+    shapes differ."""
     if current is None or kept is None or current.shape != kept.shape:
         return math.inf
-    den = float((current.abs() + kept.abs()).mean())
-    return 0.0 if den == 0.0 else 2.0 * float((current - kept).abs().mean()) / den
+    return smape(current, kept)
 
 
 def all_finite(t: torch.Tensor) -> bool:
