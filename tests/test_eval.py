@@ -10,8 +10,9 @@ import pytest
 
 from server.cli import main
 from server.eval.methods import compiled_variants, parse_method
-from server.eval.upscalers import _frames_per_method, mip_bias_for, must_show_checks
-from server.frame import Size
+from server.eval.upscalers import _frames_per_method, must_show_checks
+from server.frame import RenderFrame, Size
+from server.render.mip_bias import parse_mip_bias
 from upscalers import metrics
 
 
@@ -120,7 +121,7 @@ def test_spatial_methods_get_unjittered_frames_temporal_jittered() -> None:
     # What the pipeline sends: the game jitters only for temporal upscalers.
     times = [0.0, 1 / 60, 2 / 60]
     specs = [parse_method("bicubic"), parse_method("temporal")]
-    frames = _frames_per_method("static", Size(32, 18), 2.0, times, specs, 0.0)
+    frames = _frames_per_method("static", Size(32, 18), 2.0, times, specs, None)
     assert all(f.meta.jitter == (0.0, 0.0) for f in frames["bicubic"])
     assert any(f.meta.jitter != (0.0, 0.0) for f in frames["temporal"])
     # Same scene at the same times: the unjittered and jittered renders stay close.
@@ -130,20 +131,31 @@ def test_spatial_methods_get_unjittered_frames_temporal_jittered() -> None:
     assert diff < 20
 
 
-def test_mip_bias_auto_is_the_display_mip_and_sharpens_the_render() -> None:
-    assert mip_bias_for("auto", Size(640, 360), Size(1280, 720)) == -1.0
-    assert mip_bias_for("-0.5", Size(640, 360), Size(1280, 720)) == -0.5
-    for bad in ("sharp", "nan", "inf"):
+def test_mip_bias_game_auto_and_numbers() -> None:
+    render, display = Size(640, 360), Size(1280, 720)
+    assert parse_mip_bias("game", render, display) is None  # the renderer's own choice
+    assert parse_mip_bias("auto", render, display) == -1.0
+    assert parse_mip_bias("-0.5", render, display) == -0.5
+    for bad in ("sharp", "nan", "inf", ""):
         with pytest.raises(ValueError, match="mip-bias"):
-            mip_bias_for(bad, Size(640, 360), Size(1280, 720))
-    specs = [parse_method("bicubic")]
-    plain = _frames_per_method("static", Size(160, 90), 2.0, [0.0], specs, 0.0)["bicubic"][0]
-    biased = _frames_per_method("static", Size(160, 90), 2.0, [0.0], specs, -1.0)["bicubic"][0]
+            parse_mip_bias(bad, render, display)
+
+
+def test_game_mips_give_temporal_methods_the_display_mips_and_spatial_the_render_mips() -> None:
+    specs = [parse_method("bicubic"), parse_method("temporal")]
+
+    def frames(bias: float | None) -> dict[str, list[RenderFrame]]:
+        return _frames_per_method("static", Size(160, 90), 2.0, [0.0], specs, bias)
+
+    game, render_mips, display_mips = frames(None), frames(0.0), frames(-1.0)
+    assert np.array_equal(game["bicubic"][0].color, render_mips["bicubic"][0].color)
+    assert np.array_equal(game["temporal"][0].color, display_mips["temporal"][0].color)
 
     # A finer mip keeps more texture contrast: neighbouring pixels differ more.
     def detail(c: np.ndarray) -> float:
         return float(np.abs(np.diff(c.astype(np.float32), axis=1)).mean())
 
+    plain, biased = render_mips["bicubic"][0], display_mips["bicubic"][0]
     assert detail(biased.color) > 1.1 * detail(plain.color)
     assert np.array_equal(plain.depth, biased.depth)  # geometry is the same
 

@@ -196,3 +196,31 @@ def test_ground_truth_supersampling_converges() -> None:
     assert gt.shape == (135, 240, 3)
     assert np.isfinite(gt).all()
     assert np.mean((gt - ref) ** 2) < np.mean((one - ref) ** 2)
+
+
+def test_jittered_renders_pick_the_display_mips_unjittered_the_render_mips() -> None:
+    # A temporal upscaler gathers the display size's detail over jittered frames; a
+    # spatial one would only alias finer mips (FSR/DLSS guides: bias log2(render/display)).
+    r = Renderer("static", SMALL, scale=2.0, jitter=True)
+    assert r.texture_lod_bias == -1.0
+    jittered = r.render(1, 0.0).color.copy()
+    r.set_jitter(False)
+    assert r.texture_lod_bias == 0.0
+    r.set_jitter(True)
+    r.set_render_size(Size(120, 68), 4 / 3)  # the player changed the scale
+    assert r.texture_lod_bias == pytest.approx(-math.log2(4 / 3))
+    fixed = Renderer("static", SMALL, scale=2.0, jitter=True, texture_lod_bias=-1.0)
+    assert np.array_equal(fixed.render(1, 0.0).color, jittered)
+    r_plain = Renderer("static", SMALL, scale=2.0, jitter=True, texture_lod_bias=0.0)
+    assert not np.array_equal(r_plain.render(1, 0.0).color, jittered)
+
+
+def test_ground_truth_picks_the_display_mips_whatever_the_render_bias() -> None:
+    display = Size(96, 54)
+    truths = [
+        Renderer("static", Size(48, 27), jitter=j, texture_lod_bias=b).render_ground_truth(
+            0.1, display, supersample=1
+        )
+        for j, b in ((True, None), (False, None), (True, 2.0))
+    ]
+    assert all(np.array_equal(truths[0], t) for t in truths[1:])

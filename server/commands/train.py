@@ -10,11 +10,16 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import platform
 import shlex
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from server.frame import Size
 
 DEFAULT_DATA_DIR = Path.home() / ".cache" / "upcast"
 
@@ -39,16 +44,29 @@ def _positive_float(text: str) -> float:
     return value
 
 
+def _mip_bias(text: str, render: Size, scale: int) -> float:
+    """``--mip-bias`` as the number the dataset key records."""
+    from server.render.mip_bias import parse_mip_bias
+
+    try:
+        bias = parse_mip_bias(text, render, render.scaled(scale))
+    except ValueError as e:
+        raise SystemExit(str(e)) from None
+    # Training renders are all jittered: the game gives those the display size's mips.
+    return -math.log2(scale) if bias is None else bias
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--model", required=True, choices=("unet", "unetpp"), help="network to train"
     )
     parser.add_argument(
         "--mip-bias",
-        type=float,
-        default=0.0,
-        help="texture LOD bias of the training renders (-1 at 2x: the display size's mips, "
-        "what the game should render with for a temporal upscaler)",
+        default="game",
+        help="texture LOD bias of the training renders: 'game' (the default) or 'auto' for "
+        "the display size's mips (-1 at 2x), what the game renders for a temporal upscaler; "
+        "a number fixes it (0: the render size's mips, what the weights before 2026-11-23 "
+        "were trained on). The truth always picks the display size's mips",
     )
     parser.add_argument("--seed", type=int, default=0, help="seeds data, crops and weights")
     parser.add_argument("--steps", type=_positive_int, default=1500, help="optimizer steps")
@@ -114,7 +132,7 @@ def run(args: argparse.Namespace) -> int:
         scale=scale,
         seed=args.seed,
         scenes=tuple(parse_scene_list(args.scenes)),
-        texture_lod_bias=args.mip_bias,
+        texture_lod_bias=_mip_bias(args.mip_bias, render, scale),
     )
     out: Path = args.out or WEIGHTS_DIR / f"{args.model}.pt"
     torch.set_num_threads(args.threads)

@@ -5,7 +5,8 @@ and the ground truth at display size (unjittered, supersampled) for the
 measured frames. Each method gets the frames the game would send it in the
 real pipeline (``registry.is_temporal``, the game's ``--jitter/--no-jitter``):
 temporal methods the jittered renders they accumulate, spatial methods the
-unjittered ones (jitter without accumulation is only shimmer). Both runs of
+unjittered ones (jitter without accumulation is only shimmer), each with the
+texture mips the game picks for it (``--mip-bias game``). Both runs of
 frames show the same scene at the same times and are scored against the same
 ground truth. Methods run interleaved frame by frame in one process, each
 through its own UpscalerHost (the worker's code path), so timings compare like
@@ -20,7 +21,6 @@ per frame on a CPU, is computed on the last ``--flip-frames`` of them.
 from __future__ import annotations
 
 import argparse
-import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -39,6 +39,7 @@ from server.eval.methods import (
 )
 from server.frame import RenderFrame, Size
 from server.progress import elapsed_and_left, progress
+from server.render.mip_bias import MIP_BIAS_HELP, parse_mip_bias
 from server.render.renderer import Renderer, RenderTargets
 from server.render.scenes import SCENE_NAMES, make_scene, parse_scene_list
 from upscalers import metrics
@@ -74,14 +75,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default="",
         help="comma-separated RCAS stops; adds methods easu_rcas@S (the sharpness sweep)",
     )
-    parser.add_argument(
-        "--mip-bias",
-        default="0",
-        help="texture LOD bias of the render-size frames: a number, or 'auto' for "
-        "log2(render / display) (-1 at 2x), what FSR 1's and FSR 2's integration guides and "
-        "engines' resolution scaling apply; 0 (the default) picks the mip for the render size, "
-        "as the game does today, while the ground truth picks it for the display size",
-    )
+    parser.add_argument("--mip-bias", default="game", help=MIP_BIAS_HELP)
     parser.add_argument(
         "--compile",
         action="store_true",
@@ -121,7 +115,7 @@ def _parse(args: argparse.Namespace) -> tuple[list[str], list[float], list[Metho
         raise SystemExit(f"--frames must be above {WARMUP_CALLS} (the untimed warm-up calls)")
     display = Size.parse(args.display_size)
     try:
-        mip_bias_for(args.mip_bias, display, display)  # a bad value fails before rendering
+        parse_mip_bias(args.mip_bias, display, display)  # a bad value fails before rendering
     except ValueError as e:
         raise SystemExit(str(e)) from None
     return scenes, scales, methods, display
@@ -134,22 +128,13 @@ def _start_time(scene: str, measure_from: int, fps: float) -> float:
     return max(0.0, cuts[0] - (measure_from - 0.5) / fps) if cuts else 0.0
 
 
-def mip_bias_for(text: str, render: Size, display: Size) -> float:
-    """``--mip-bias``: 'auto' is log2(render / display) (the mip the display size would
-    pick), anything else a finite number."""
-    if text.strip() == "auto":
-        return math.log2(render.width / display.width)
-    try:
-        bias = float(text)
-    except ValueError:
-        raise ValueError(f"--mip-bias: expected a number or 'auto', got {text!r}") from None
-    if not math.isfinite(bias):
-        raise ValueError(f"--mip-bias must be finite, got {text!r}")
-    return bias
-
-
 def _render_frames(
-    scene: str, render: Size, scale: float, times: list[float], jitter: bool, mip_bias: float
+    scene: str,
+    render: Size,
+    scale: float,
+    times: list[float],
+    jitter: bool,
+    mip_bias: float | None,
 ) -> list[RenderFrame]:
     renderer = Renderer(scene, render, scale=scale, jitter=jitter, texture_lod_bias=mip_bias)
     return [renderer.render(i, t, RenderTargets.allocate(render)) for i, t in enumerate(times)]
@@ -161,7 +146,7 @@ def _frames_per_method(
     scale: float,
     times: list[float],
     methods: list[MethodSpec],
-    mip_bias: float,
+    mip_bias: float | None,
 ) -> dict[str, list[RenderFrame]]:
     """What the game sends each method: jittered frames to temporal ones only."""
     runs: dict[bool, list[RenderFrame]] = {}
@@ -247,7 +232,7 @@ def run(args: argparse.Namespace) -> int:
         for scale in scales:
             step += 1
             render = Size(round(display.width / scale), round(display.height / scale))
-            bias = mip_bias_for(args.mip_bias, render, display)
+            bias = parse_mip_bias(args.mip_bias, render, display)
             frames = _frames_per_method(scene, render, scale, times, methods, bias)
             with_flip = scale in flip_scales
             results = _evaluate_scale(

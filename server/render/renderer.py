@@ -10,6 +10,7 @@ to the current ones and zero motion.
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -116,8 +117,15 @@ def _row_span(rows: torch.Tensor) -> tuple[int, int]:
 class Renderer:
     """Renders one named scene at ``render_size``; see the module doc for prev-frame state.
 
-    ``texture_lod_bias`` > 0 picks blurrier mip levels (tests that check geometry
-    by warping use it so texture detail does not dominate the resampling error).
+    Texture mips: a jittered render feeds a temporal upscaler, which gathers the
+    display size's detail over several frames, so by default it picks the mips
+    of the display size (LOD bias log2(render / display) = -log2(scale), as the
+    FSR and DLSS integration guides ask); an unjittered render feeds a spatial
+    upscaler, which cannot resolve more than one frame's detail, and keeps the
+    render size's mips (finer ones would only alias). ``texture_lod_bias``
+    fixes the bias for every frame instead (> 0 picks blurrier mips: tests that
+    check geometry by warping use it so texture detail does not dominate the
+    resampling error). The ground truth always picks the display size's mips.
     """
 
     def __init__(
@@ -130,7 +138,7 @@ class Renderer:
         jitter_phases: int | None = None,
         scale: float = 2.0,
         device: str = "cpu",
-        texture_lod_bias: float = 0.0,
+        texture_lod_bias: float | None = None,
     ) -> None:
         self.scene: Scene = make_scene(scene_name, seed)
         self.render_size = Size(*render_size)
@@ -141,13 +149,29 @@ class Renderer:
         )
         self.device = torch.device(device)
         self.atlas: TextureAtlas = texture_atlas(str(self.device))
-        self.entries: dict[str, MaterialEntry] = {
-            name: material_entry(m, self.atlas, texture_lod_bias)
-            for name, m in self.scene.materials.items()
-        }
+        self.fixed_lod_bias = texture_lod_bias
+        self._entries_by_bias: dict[float, dict[str, MaterialEntry]] = {}
+        self.entries = self._entries_for(self.texture_lod_bias)
         self.game_camera = GameCamera()
         self._last_t: float | None = None
         self._last_input: InputState = self.game_camera.state
+
+    @property
+    def texture_lod_bias(self) -> float:
+        """The mip bias of the next frame (see the class doc)."""
+        if self.fixed_lod_bias is not None:
+            return self.fixed_lod_bias
+        return -math.log2(self.scale) if self.jitter and self.scale > 0 else 0.0
+
+    def _entries_for(self, bias: float) -> dict[str, MaterialEntry]:
+        entries = self._entries_by_bias.get(bias)
+        if entries is None:
+            entries = {
+                name: material_entry(m, self.atlas, bias)
+                for name, m in self.scene.materials.items()
+            }
+            self._entries_by_bias[bias] = entries
+        return entries
 
     def apply_input(self, event: CameraInput) -> None:
         """Player input, applied from the next rendered frame on."""
@@ -157,6 +181,7 @@ class Renderer:
         """Jitter the camera (temporal upscalers) or not (spatial ones), from the next frame."""
         self.jitter = on
         self.jitter_phases = jitter_phase_count(self.scale)
+        self.entries = self._entries_for(self.texture_lod_bias)
 
     def set_render_size(self, render_size: Size, scale: float) -> None:
         """Render at another size from the next frame on (the player changed the scale).
@@ -166,6 +191,7 @@ class Renderer:
         self.jitter_phases = jitter_phase_count(scale)
         self.render_size = Size(*render_size)
         self.scale = scale
+        self.entries = self._entries_for(self.texture_lod_bias)
         self._last_t = None
 
     def jitter_for(self, frame_index: int) -> tuple[float, float]:
@@ -200,14 +226,19 @@ class Renderer:
         )
 
     def _shade_objects(
-        self, classes: list[ClassHits], setup: FrameSetup, grid: RayGrid, sun: np.ndarray
+        self,
+        classes: list[ClassHits],
+        setup: FrameSetup,
+        grid: RayGrid,
+        sun: np.ndarray,
+        entries: dict[str, MaterialEntry],
     ) -> _ShadedObjects | None:
         """Linear colour of every pixel won by a bounded object; None if there is none."""
         surfs: list[torch.Tensor] = []
         pix: list[torch.Tensor] = []
         moving = []
         for hits in classes:
-            rows, q = object_surface(hits, self.entries, grid, sun)
+            rows, q = object_surface(hits, entries, grid, sun)
             surfs.append(rows)
             pix.append(hits.pix)
             moving += [(hits, k, inst, q) for k, inst in enumerate(hits.insts) if inst.obj.moving]
@@ -218,8 +249,15 @@ class Renderer:
         planes = shade(self.atlas, surf_all, self.scene.lighting, setup.far, surf_all[S])
         return _ShadedObjects(pix_all, surf_all[S], planes, moving)
 
-    def _trace(self, setup: FrameSetup, grid: RayGrid, gbuffers: bool, motion: bool) -> _Band:
-        """Colour (and optionally s, motion, mask) of one band of rays."""
+    def _trace(
+        self,
+        setup: FrameSetup,
+        grid: RayGrid,
+        gbuffers: bool,
+        motion: bool,
+        entries: dict[str, MaterialEntry],
+    ) -> _Band:
+        """Colour (and optionally s, motion, mask) of one band of rays, textured by ``entries``."""
         lighting = self.scene.lighting
         sun = sun_direction(lighting)
         dp = depth_pass(setup, grid)
@@ -235,7 +273,7 @@ class Renderer:
             b0, b1 = _row_span(g.s.amax(dim=1) > 0.0)
             if b1 <= b0:
                 continue
-            surf = ground_surface(g, self.entries, setup, grid, (b0, b1), sun)
+            surf = ground_surface(g, entries, setup, grid, (b0, b1), sun)
             planes = shade_ground(self.atlas, surf, lighting, setup.far)
             # Rows that may hold other pixels (sky, another ground) blend by coverage.
             c0, c1 = (b0, b1) if multi else (max(a0, b0), min(a1, b1))
@@ -250,7 +288,7 @@ class Renderer:
                     dst[c1 - b0 :].copy_(plane[c1 - b0 :])
                 part = dst[c0 - b0 : c1 - b0]
                 part.lerp_(plane[c0 - b0 : c1 - b0], mask)
-        shaded = self._shade_objects(dp.classes, setup, grid, sun)
+        shaded = self._shade_objects(dp.classes, setup, grid, sun, entries)
         if shaded is not None:
             for ch, plane in enumerate(shaded.planes):
                 color[ch].view(-1).index_copy_(0, shaded.pix, plane)
@@ -275,7 +313,12 @@ class Renderer:
         return band
 
     def _linear_color(
-        self, setup: FrameSetup, size: Size, jitter: tuple[float, float], ss: int
+        self,
+        setup: FrameSetup,
+        size: Size,
+        jitter: tuple[float, float],
+        ss: int,
+        entries: dict[str, MaterialEntry],
     ) -> torch.Tensor:
         """(3, H, W) linear colour averaged over an ss x ss grid of subsamples per pixel."""
         w, h = size.width * ss, size.height * ss
@@ -284,7 +327,7 @@ class Renderer:
         for y0 in range(0, h, band_rows):
             y1 = min(h, y0 + band_rows)
             grid = make_grid(setup, w, h, (jitter[0] * ss, jitter[1] * ss), y0, y1, self.device)
-            col = self._trace(setup, grid, gbuffers=False, motion=False).color
+            col = self._trace(setup, grid, gbuffers=False, motion=False, entries=entries).color
             rows = (y1 - y0) // ss
             pooled = col.view(3, rows, ss, size.width, ss).mean(dim=(2, 4))
             out[:, y0 // ss : y0 // ss + rows] = pooled
@@ -316,10 +359,12 @@ class Renderer:
         setup = self._setup(t, prev, size, reset, self._last_input)
         jit = self.jitter_for(frame_index)
         grid = make_grid(setup, size.width, size.height, jit, 0, size.height, self.device)
-        band = self._trace(setup, grid, gbuffers=True, motion=not reset)
+        band = self._trace(setup, grid, gbuffers=True, motion=not reset, entries=self.entries)
         assert band.s is not None and band.mask is not None
         color = (
-            band.color if supersample <= 1 else self._linear_color(setup, size, jit, supersample)
+            band.color
+            if supersample <= 1
+            else self._linear_color(setup, size, jit, supersample, self.entries)
         )
         encode_srgb_into(color, torch.from_numpy(targets.color))
         depth = torch.from_numpy(targets.depth)
@@ -377,7 +422,11 @@ class Renderer:
         targets.dynamic_mask.fill(0)
         shaded = (
             self._shade_objects(
-                depth_pass(setup, grid).classes, setup, grid, sun_direction(self.scene.lighting)
+                depth_pass(setup, grid).classes,
+                setup,
+                grid,
+                sun_direction(self.scene.lighting),
+                self.entries,
             )
             if moving
             else None
@@ -395,10 +444,15 @@ class Renderer:
         return RenderFrame(targets.color, targets.depth, targets.motion, targets.dynamic_mask, meta)
 
     def render_ground_truth(self, t: float, display_size: Size, supersample: int = 3) -> U8Array:
-        """Display-size sRGB at ``t``: unjittered, ss x ss subsamples averaged in linear light."""
+        """Display-size sRGB at ``t``: unjittered, ss x ss subsamples averaged in linear light.
+
+        It picks the display size's mips (bias 0) whatever the renders use: the
+        reference is what a native display-size render would show."""
         size = Size(*display_size)
         setup = self._setup(t, t, size, True, self.game_camera.state)
-        color = self._linear_color(setup, size, (0.0, 0.0), max(1, supersample))
+        color = self._linear_color(
+            setup, size, (0.0, 0.0), max(1, supersample), self._entries_for(0.0)
+        )
         out = np.empty((size.height, size.width, 3), np.uint8)
         encode_srgb_into(color, torch.from_numpy(out))
         return out
