@@ -11,6 +11,7 @@ from pydantic import AfterValidator
 
 from server.frame import Size
 from upscalers import framegen, registry
+from upscalers.cache import policies
 
 
 def _known_upscaler(name: str) -> str:
@@ -27,6 +28,11 @@ def _known_predictor(name: str) -> str:
     return name
 
 
+def _known_cache_policy(name: str) -> str:
+    policies.make_policy(name)  # raises ValueError listing the allowed names
+    return name.strip()
+
+
 def _size_text(text: str) -> str:
     Size.parse(text)  # raises ValueError naming the expected form
     return text
@@ -34,4 +40,5 @@ def _size_text(text: str) -> str:
 
 UpscalerName = Annotated[str, AfterValidator(_known_upscaler)]
 PredictorName = Annotated[str, AfterValidator(_known_predictor)]
+CachePolicyName = Annotated[str, AfterValidator(_known_cache_policy)]
 SizeText = Annotated[str, AfterValidator(_size_text)]

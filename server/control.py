@@ -28,15 +28,22 @@ class SetUpscaler(BaseModel):
     name: str
 
 
+class SetCachePolicy(BaseModel):
+    """Run another layer-cache policy in the current method (upscalers/cache)."""
+
+    op: Literal["set_cache_policy"] = "set_cache_policy"
+    policy: str = Field(max_length=64)
+
+
 class GetStatus(BaseModel):
     op: Literal["status"] = "status"
 
 
-ControlMessage = Annotated[SetUpscaler | GetStatus, Field(discriminator="op")]
+ControlMessage = Annotated[SetUpscaler | SetCachePolicy | GetStatus, Field(discriminator="op")]
 _MESSAGE = TypeAdapter(ControlMessage)
 
 
-def parse_message(data: bytes) -> SetUpscaler | GetStatus:
+def parse_message(data: bytes) -> SetUpscaler | SetCachePolicy | GetStatus:
     """Decode one datagram; raises ValueError naming what is wrong."""
     if len(data) > MAX_MESSAGE_BYTES:
         raise ValueError(f"control message of {len(data)} bytes exceeds {MAX_MESSAGE_BYTES}")

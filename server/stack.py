@@ -20,7 +20,7 @@ from pathlib import Path
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from server.config_types import PredictorName, SizeText, UpscalerName
+from server.config_types import CachePolicyName, PredictorName, SizeText, UpscalerName
 from server.frame import Size
 from server.ring import SHM_DIR, FrameRing
 from server.ring_frames import create_display_ring, create_render_ring
@@ -50,6 +50,11 @@ class SessionConfig(BaseModel):
     )
     predictor: PredictorName = Field(
         default="mpe", description="frame predictor the worker uses for predicted frames"
+    )
+    cache_policy: CachePolicyName | None = Field(
+        default=None,
+        description="layer-cache policy of unet_cached (delta_l, delta_h, budget, budget@DB, "
+        "every_N, deepcache, motion; None: delta_l); switchable at run time",
     )
     seed: int = Field(default=0, description="scene seed")
     game_threads: int = Field(default=1, ge=1, description="torch threads in the game")
@@ -178,6 +183,7 @@ class LocalStack:
                 str(self.worker_metrics_port),
                 "--predictor",
                 c.predictor,
+                *(["--cache-policy", c.cache_policy] if c.cache_policy else []),
             )
         )
 

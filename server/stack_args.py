@@ -26,6 +26,12 @@ def add_session_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--predictor", default="mpe", help="frame predictor for frame generation (default: mpe)"
     )
+    parser.add_argument(
+        "--cache-policy",
+        default=None,
+        help="layer-cache policy of the unet_cached upscaler: delta_l (default), delta_h, "
+        "budget, budget@DB, every_N, deepcache, motion (switchable at run time)",
+    )
 
 
 def session_config_from(args: argparse.Namespace) -> SessionConfig | None:
@@ -43,4 +49,5 @@ def session_config_from(args: argparse.Namespace) -> SessionConfig | None:
         upscaler=args.upscaler,
         frame_generation=args.frame_generation,
         predictor=args.predictor,
+        cache_policy=args.cache_policy,
     )

@@ -20,8 +20,8 @@ from typing import Any
 import torch
 from pydantic import BaseModel, ConfigDict, Field
 
-from server.config_types import PredictorName, SizeText, UpscalerName
-from server.control import ControlServer, GetStatus, SetUpscaler, parse_message
+from server.config_types import CachePolicyName, PredictorName, SizeText, UpscalerName
+from server.control import ControlServer, GetStatus, SetCachePolicy, SetUpscaler, parse_message
 from server.frame import FrameFlags, Size
 from server.metrics_process import serve_metrics, worker_registry
 from server.ring import FrameRing
@@ -57,6 +57,11 @@ class WorkerConfig(BaseModel):
         default="mpe",
         description="frame predictor for the game's PREDICTED ticks (frame generation): "
         + ", ".join(framegen.available()),
+    )
+    cache_policy: CachePolicyName | None = Field(
+        default=None,
+        description="layer-cache policy of the methods with a cache (unet_cached): "
+        "delta_l, delta_h, budget, every_N, deepcache, motion, NAME@VALUE (None: their default)",
     )
     compile: bool = Field(
         default=False,
@@ -152,7 +157,11 @@ class UpscaleWorker:
                 if isinstance(message, SetUpscaler):
                     self.host.switch(message.name)
                     self.stats.switches += 1
-                    server.reply(addr, {"ok": True, "upscaler": self.host.name})
+                    reply = {"upscaler": self.host.name, "cache_policy": self.host.cache_policy}
+                    server.reply(addr, {"ok": True, **reply})
+                elif isinstance(message, SetCachePolicy):
+                    self.host.set_cache_policy(message.policy)
+                    server.reply(addr, {"ok": True, "cache_policy": self.host.cache_policy})
                 elif isinstance(message, GetStatus):
                     server.reply(addr, {"ok": True, **self.status()})
             except ValueError as exc:
@@ -163,6 +172,7 @@ class UpscaleWorker:
     def status(self) -> dict[str, Any]:
         return {
             "upscaler": self.host.name,
+            "cache_policy": self.host.cache_policy,
             "display_size": str(self.host.display_size),
             "frames": self.stats.frames,
             "errors": self.stats.errors,
@@ -215,7 +225,12 @@ def run_worker(config: WorkerConfig, stop: threading.Event | None = None) -> int
             signal.signal(sig, lambda *_: stop.set())
     ring_in = attach_render_ring(config.ring_in, wait_s=config.attach_timeout_s)
     ring_out = attach_display_ring(config.ring_out, wait_s=config.attach_timeout_s)
-    host = UpscalerHost(config.upscaler, Size.parse(config.display_size), compile=config.compile)
+    host = UpscalerHost(
+        config.upscaler,
+        Size.parse(config.display_size),
+        compile=config.compile,
+        cache_policy=config.cache_policy,
+    )
     prediction = PredictionStage(config.predictor, background=True)
     worker = UpscaleWorker(ring_in, ring_out, host, newest=config.newest, prediction=prediction)
     serve_metrics(worker_registry(worker), config.metrics_port, "worker")

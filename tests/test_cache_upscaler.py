@@ -285,3 +285,48 @@ def test_unet_cached_from_the_registry_skips_work_on_a_still_scene() -> None:
     assert stats.refreshes >= 1 and stats.cached >= 3, stats
     with pytest.raises(ValueError, match="policy"):
         registry.create("unet_cached", policy="no_such_policy")
+
+
+def test_the_host_sets_a_cache_policy_at_run_time_and_keeps_it_across_switches() -> None:
+    from server.render.renderer import Renderer, RenderTargets
+    from upscalers.cache.policies.schedule import EveryNPolicy
+    from upscalers.host import UpscalerHost
+
+    size, display = Size(48, 28), Size(96, 56)
+    renderer = Renderer("static", size, scale=2.0)
+    frames = [renderer.render(i, i / 30, RenderTargets.allocate(size)) for i in range(4)]
+    host = UpscalerHost("unet_cached", display)
+    assert host.cache_policy == "delta_l"  # the method's default
+    for frame in frames[:2]:
+        host.upscale(frame)
+    host.set_cache_policy("every_2")
+    cached = host.upscaler.cached  # type: ignore[attr-defined]
+    assert isinstance(cached.policy, EveryNPolicy) and host.cache_policy == "every_2"
+    host.upscale(frames[2])
+    assert cached.last_action == "forced"  # a new policy starts from a full pass
+    host.upscale(frames[3])
+    assert cached.last_action == "cached"
+    with pytest.raises(ValueError, match="unknown cache policy"):
+        host.set_cache_policy("sometimes")
+    assert host.cache_policy == "every_2"
+    # A method without a cache refuses, and the choice survives a switch away and back.
+    host.switch("bicubic")
+    with pytest.raises(ValueError, match="no layer cache; cache policies apply to unet_cached"):
+        host.set_cache_policy("budget")
+    host.switch("unet_cached")
+    assert host.cache_policy == "every_2"
+
+
+def test_a_cache_policy_chosen_at_start_applies_to_cached_methods_only() -> None:
+    from upscalers import registry
+    from upscalers.host import UpscalerHost
+
+    host = UpscalerHost("bilinear", Size(96, 56), cache_policy="budget@43")
+    assert host.cache_policy is None  # bilinear has no cache
+    host.switch("unet_cached")
+    assert host.cache_policy == "budget@43"
+    with pytest.raises(ValueError, match="unknown cache policy"):
+        UpscalerHost("bilinear", Size(96, 56), cache_policy="reuse")
+    assert registry.cache_policy_at_start("unet_cached", None) == "delta_l"
+    assert registry.cache_policy_at_start("unet_cached", "every_5") == "every_5"
+    assert registry.cache_policy_at_start("bicubic", "every_5") is None

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from server.control import ControlServer, SetUpscaler, parse_message
+from server.control import ControlServer, SetCachePolicy, SetUpscaler, parse_message
 from server.moq import events as ev
 from server.serve.control_client import request_control
 from server.serve.control_schema import DEFAULT_PATH, render
@@ -48,9 +48,9 @@ def test_refusals_say_why_and_carry_the_seq() -> None:
     router = _router(results, worker=Path("/nonexistent.ctl"))
     router.handle("g/input/a", b'{"type":"control","upscaler":"no_such","seq":7}')
     router.handle("g/input/a", b'{"type":"control","cache_policy":"reuse","seq":8}')
-    # One part refused refuses the whole request: frame_generation is not applied either.
+    # One part refused refuses the whole request: the switch is not applied either.
     router.handle(
-        "g/input/a", b'{"type":"control","frame_generation":true,"cache_policy":"off","seq":9}'
+        "g/input/a", b'{"type":"control","upscaler":"bicubic","cache_policy":"budget","seq":9}'
     )
     router.handle("g/input/a", b'{"type":"control","scale":99,"seq":10}')  # out of range
     router.handle("g/input/a", b'{"type":"control","seq":11}')  # asks for nothing
@@ -58,8 +58,8 @@ def test_refusals_say_why_and_carry_the_seq() -> None:
     assert [(r.seq, r.accepted) for r in results] == [(n, False) for n in (7, 8, 9, 10, 11)]
     reasons = [r.reason or "" for r in results]
     assert "unknown 'no_such'" in reasons[0] and "bilinear" in reasons[0]
-    assert reasons[1].startswith("cache_policy: not available in this build")
-    assert reasons[2].startswith("cache_policy: not available in this build")
+    assert "unknown cache policy 'reuse'" in reasons[1] and "budget" in reasons[1]
+    assert reasons[2] == "cache_policy: upscaler 'bicubic' has no layer cache"
     assert "scale" in reasons[3]
     assert "empty control request" in reasons[4]
     assert all(r.source == "g/input/a" for r in results)
@@ -194,3 +194,47 @@ def test_upcast_control_switches_a_served_session_and_reports_refusals() -> None
         record = asyncio.run(request_control(served.player_url("ctl-1"), "ctl-1", {"scale": 99}))
         assert record.last_control is not None and not record.last_control.accepted
         assert "scale" in (record.last_control.reason or "")
+
+
+def test_a_cache_policy_follows_the_switch_and_reaches_the_stream_state(tmp_path: Path) -> None:
+    control = ControlServer(tmp_path / "worker.ctl")
+    results: list[ControlResult] = []
+    seen: list[tuple[str, object]] = []
+    policies: list[str | None] = []
+
+    async def scenario() -> None:
+        router = _router(results, worker=control.path)
+        router.on_cache_policy = policies.append
+        router.handle(
+            "g/input/a",
+            b'{"type":"control","upscaler":"unet_cached","cache_policy":"budget@43","seq":1}',
+        )
+        router.handle("g/input/a", b'{"type":"control","cache_policy":"every_2","seq":2}')
+        deadline = time.monotonic() + 5
+        while len(results) < 2 and time.monotonic() < deadline:
+            for data, addr in control.poll():
+                msg = parse_message(data)
+                if isinstance(msg, SetUpscaler):
+                    seen.append(("upscaler", msg.name))
+                    control.reply(addr, {"ok": True, "cache_policy": "delta_l"})
+                elif isinstance(msg, SetCachePolicy):
+                    seen.append(("policy", msg.policy))
+                    ok = msg.policy == "budget@43"  # the worker refuses the other one
+                    control.reply(
+                        addr,
+                        {"ok": True, "cache_policy": msg.policy}
+                        if ok
+                        else {"ok": False, "error": "upscaler 'bicubic' has no layer cache"},
+                    )
+            await asyncio.sleep(0.01)
+
+    try:
+        asyncio.run(scenario())
+    finally:
+        control.close()
+    # The switch goes first, then the policy: the new method runs it from its first frame.
+    assert seen[:2] == [("upscaler", "unet_cached"), ("policy", "budget@43")]
+    by_seq = {r.seq: r for r in results}
+    assert by_seq[1].accepted and by_seq[1].requested["cache_policy"] == "budget@43"
+    assert not by_seq[2].accepted and "no layer cache" in (by_seq[2].reason or "")
+    assert policies == ["delta_l", "budget@43"]  # what the worker reported, in order

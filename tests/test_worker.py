@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from server.control import GetStatus, SetUpscaler, send_control
+from server.control import GetStatus, SetCachePolicy, SetUpscaler, send_control
 from server.frame import RenderFrame, Size
 from server.render.renderer import Renderer, RenderTargets
 from server.ring import RingMode
@@ -97,7 +97,7 @@ def test_decoupled_output_is_bit_identical_and_switchable(worker: WorkerUnderTes
         worker.send(frame)
     first = worker.receive(4)
     reply = send_control(worker.control, SetUpscaler(name="bicubic"))
-    assert reply == {"ok": True, "upscaler": "bicubic"}
+    assert reply == {"ok": True, "upscaler": "bicubic", "cache_policy": None}
     for frame in frames[4:]:
         worker.send(frame)
     second = worker.receive(4)
@@ -131,6 +131,9 @@ def test_worker_survives_nan_inf_and_bad_control(worker: WorkerUnderTest) -> Non
     assert fid == 0 and image.shape == (DISPLAY.height, DISPLAY.width, 3)
     refused = send_control(worker.control, SetUpscaler(name="does-not-exist"))
     assert refused["ok"] is False and "allowed" in refused["error"]
+    # bilinear has no layer cache: a policy for it is refused, the worker goes on.
+    refused = send_control(worker.control, SetCachePolicy(policy="budget"))
+    assert refused["ok"] is False and "no layer cache" in refused["error"]
     import socket
 
     sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)

@@ -29,3 +29,12 @@ class Upscaler(ABC):
 
     def reset(self) -> None:  # noqa: B027 - stateless methods have nothing to reset
         """Forget any history (scene cut, resolution change)."""
+
+    @property
+    def cache_policy(self) -> str | None:
+        """The layer-cache policy this method runs (upscalers/cache), None without a cache."""
+        return None
+
+    def set_cache_policy(self, policy: str) -> None:
+        """Run another cache policy from the next frame on (ValueError: no cache, bad name)."""
+        raise ValueError(f"upscaler {self.name!r} has no layer cache to set a policy for")

@@ -18,6 +18,7 @@ import torch
 from server.frame import FrameFlags, RenderFrame, Size
 from upscalers import registry
 from upscalers.base import Upscaler
+from upscalers.cache.policies import make_policy
 from upscalers.sanitize import SanitizeReport, sanitize_frame
 
 log = logging.getLogger(__name__)
@@ -35,10 +36,16 @@ class UpscalerHost:
         options: Mapping[str, Any] | None = None,
         *,
         compile: bool = False,
+        cache_policy: str | None = None,
     ) -> None:
         # compile=True: every method that has a compiled path (the start one and any
         # switched to) uses it; the others run as usual.
         self.compile = compile
+        # The layer-cache policy chosen (at start or at run time): every method with a
+        # cache started later runs it too, so a switch away and back keeps the choice.
+        if cache_policy is not None:
+            make_policy(cache_policy)  # a bad name fails at start, cache or not
+        self.chosen_cache_policy = cache_policy
         # Constructor options (e.g. RCAS sharpness) of the method started with; a
         # run-time switch starts the new method with its defaults.
         self.upscaler: Upscaler = self._create(name, options)
@@ -68,7 +75,28 @@ class UpscalerHost:
         if self.compile and registry.takes_option(name, "compile"):
             opts.setdefault("compile", True)
             log.info("%s: compiled path on; the first frame of each size compiles", name)
+        if self.chosen_cache_policy is not None and registry.takes_option(name, "policy"):
+            opts.setdefault("policy", self.chosen_cache_policy)
         return registry.create(name, **opts)
+
+    @property
+    def cache_policy(self) -> str | None:
+        """The policy the current method's layer cache runs (None: it has no cache)."""
+        return self.upscaler.cache_policy
+
+    def set_cache_policy(self, policy: str) -> None:
+        """Run ``policy`` from the next frame on, and in every cached method started
+        later. ValueError for a bad name, or when the current method has no cache
+        (nothing changes then: a refused request is not half-applied)."""
+        if self.upscaler.cache_policy is None:
+            cached = [m for m in registry.available() if registry.takes_option(m, "policy")]
+            raise ValueError(
+                f"upscaler {self.name!r} has no layer cache; cache policies apply to "
+                + ", ".join(cached)
+            )
+        self.upscaler.set_cache_policy(policy)
+        self.chosen_cache_policy = policy.strip()
+        log.info("cache policy of %s: %s", self.name, self.chosen_cache_policy)
 
     def upscale(self, frame: RenderFrame) -> torch.Tensor:
         """Sanitize, reset history when needed, upscale. Returns the method's tensor."""

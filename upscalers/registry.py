@@ -70,6 +70,18 @@ def takes_option(name: str, option: str) -> bool:
     return factory is not None and option in _keyword_options(factory)
 
 
+def cache_policy_at_start(name: str, chosen: str | None) -> str | None:
+    """The cache policy method ``name`` starts with: ``chosen``, else its own default;
+    None for a method without a layer cache."""
+    factory = _REGISTRY.get(name)
+    if factory is None or not takes_option(name, "policy"):
+        return None
+    if chosen is not None:
+        return chosen
+    default = inspect.signature(factory).parameters["policy"].default
+    return default if isinstance(default, str) else None
+
+
 def _keyword_options(factory: Callable[..., Upscaler]) -> set[str]:
     params = inspect.signature(factory).parameters.values()
     return {p.name for p in params if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)}

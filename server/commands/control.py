@@ -25,7 +25,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--upscaler", default=None, help="switch the worker to this method")
     parser.add_argument("--scale", type=float, default=None, help="display / render size")
     parser.add_argument(
-        "--cache-policy", default=None, help="upscaler cache policy (not available yet)"
+        "--cache-policy",
+        default=None,
+        help="layer-cache policy of unet_cached: delta_l, delta_h, budget, budget@DB, every_N, "
+        "deepcache, motion, delta@SMAPE",
     )
     parser.add_argument(
         "--frame-generation",
@@ -54,7 +57,11 @@ def run(args: argparse.Namespace) -> int:
         print(format_validation_error("control request", exc), file=sys.stderr)
         return 2
     if not control.requested():
-        print("upcast control: nothing to change: give --upscaler and/or --scale", file=sys.stderr)
+        print(
+            "upcast control: nothing to change: give --upscaler, --scale, --cache-policy "
+            "and/or --frame-generation",
+            file=sys.stderr,
+        )
         return 2
     if not args.relay.startswith(("http://", "https://")):
         print(f"upcast control: --relay must be http(s)://, got {args.relay}", file=sys.stderr)

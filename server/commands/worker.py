@@ -26,6 +26,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="frame predictor for the game's predicted ticks (frame generation; default: mpe)",
     )
     parser.add_argument(
+        "--cache-policy",
+        default=None,
+        help="layer-cache policy of unet_cached (delta_l, delta_h, budget, budget@DB, every_N, "
+        "deepcache, motion; default delta_l)",
+    )
+    parser.add_argument(
         "--compile",
         action="store_true",
         help="torch.compile easu and easu_rcas (the first frame of a size waits for it)",
@@ -49,6 +55,7 @@ def run(args: argparse.Namespace) -> int:
             metrics_port=args.metrics_port,
             compile=args.compile,
             predictor=args.predictor,
+            cache_policy=args.cache_policy,
         )
     except ValidationError as exc:
         print(format_validation_error("worker", exc), file=sys.stderr)

@@ -15,7 +15,7 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from server.config_types import PredictorName, SizeText, UpscalerName
+from server.config_types import CachePolicyName, PredictorName, SizeText, UpscalerName
 from server.stack import SessionConfig
 from server.stream_config import StreamConfig
 
@@ -39,6 +39,9 @@ class SessionOverride(BaseModel):
         default=None, description="start with frame generation on (renders every other frame)"
     )
     predictor: PredictorName | None = Field(default=None, description="frame predictor")
+    cache_policy: CachePolicyName | None = Field(
+        default=None, description="layer-cache policy of unet_cached"
+    )
     seed: int | None = Field(default=None, description="scene seed")
     bitrate_kbps: int | None = Field(default=None, description="video bitrate")
     gop_seconds: float | None = Field(default=None, description="keyframe interval (seconds)")

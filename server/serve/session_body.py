@@ -71,6 +71,7 @@ async def run_game_session(
     from server.serve.status_reporter import StatusReporter
     from server.session.runner import StreamingSession, StreamSettings
     from server.stack import LocalStack
+    from upscalers import registry as upscaler_registry
 
     loop = asyncio.get_running_loop()
     config, stream = plan.config, plan.stream
@@ -100,6 +101,9 @@ async def run_game_session(
             upscaler=config.upscaler,
             scale=config.scale,
             frame_generation=config.frame_generation,
+            cache_policy=upscaler_registry.cache_policy_at_start(
+                config.upscaler, config.cache_policy
+            ),
         )
         session = StreamingSession(
             settings,

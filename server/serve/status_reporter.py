@@ -33,6 +33,7 @@ class StatusReporter:
             upscaler=upscaler if isinstance(upscaler, str) else None,
             scale=float(scale) if isinstance(scale, int | float) else None,
             frame_generation=fg if isinstance(fg := state.get("frame_generation"), bool) else None,
+            cache_policy=cp if isinstance(cp := state.get("cache_policy"), str) else None,
             fps=round(self.session.monitor.snapshot().fps, 2),
             frames=self.session.monitor.frames,
             last_control=self.last_control,

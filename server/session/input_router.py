@@ -16,9 +16,9 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from server.control import SetUpscaler, send_control
+from server.control import SetCachePolicy, SetUpscaler, send_control
 from server.game_input import InputMessage, send_input
-from server.session.session_control import NOT_AVAILABLE, ControlResult
+from server.session.session_control import ControlResult
 from server.session.viewer_input import (
     BadViewerMessage,
     ControlMessage,
@@ -46,6 +46,7 @@ class InputRouter:
         on_upscaler_set: Callable[[str], None] | None = None,
         on_scale_request: Callable[[float], None] | None = None,
         on_frame_generation: Callable[[bool], None] | None = None,
+        on_cache_policy: Callable[[str | None], None] | None = None,
         on_control_result: Callable[[ControlResult], None] | None = None,
     ) -> None:
         self.game_input = game_input
@@ -54,6 +55,11 @@ class InputRouter:
         self.on_upscaler_set = on_upscaler_set
         self.on_scale_request = on_scale_request
         self.on_frame_generation = on_frame_generation
+        # The worker's cache policy after a switch it accepted (None: the method has none).
+        self.on_cache_policy = on_cache_policy
+        # One request talks to the worker at a time, in arrival order (asyncio.Lock is
+        # FIFO): a later policy must not land before an earlier switch and its policy.
+        self._worker_turn = asyncio.Lock()
         # Every control request ends in exactly one result (the status track shows it).
         self.on_control_result = on_control_result
         self.held: dict[str, HeldKeys] = {}
@@ -134,17 +140,26 @@ class InputRouter:
 
     def _control(self, source: str, message: ControlMessage) -> None:
         requested = message.requested()
-        problems = [f"{name}: {why}" for name, why in NOT_AVAILABLE.items() if name in requested]
+        problems = []
         if not requested:
-            problems.append("empty control request: set upscaler, scale and/or frame_generation")
-        if message.upscaler is not None:
-            if message.upscaler not in registry.available():
-                problems.append(
-                    f"upscaler: unknown {message.upscaler!r}; available: "
-                    + ", ".join(registry.available())
-                )
-            elif self.worker_control is None:
-                problems.append("upscaler: this session has no worker control socket")
+            problems.append(
+                "empty control request: set upscaler, scale, cache_policy and/or frame_generation"
+            )
+        if message.upscaler is not None and message.upscaler not in registry.available():
+            problems.append(
+                f"upscaler: unknown {message.upscaler!r}; available: "
+                + ", ".join(registry.available())
+            )
+        elif (
+            message.cache_policy is not None
+            and message.upscaler is not None
+            and not registry.takes_option(message.upscaler, "policy")
+        ):
+            # Refused before the switch, so the request is not half-applied.
+            problems.append(f"cache_policy: upscaler {message.upscaler!r} has no layer cache")
+        for name in ("upscaler", "cache_policy"):
+            if name in requested and self.worker_control is None:
+                problems.append(f"{name}: this session has no worker control socket")
         if problems:
             # Nothing of a refused request is applied: a half-applied one is harder to read.
             self._report(
@@ -176,32 +191,55 @@ class InputRouter:
             if self.on_frame_generation is not None:
                 self.on_frame_generation(message.frame_generation)
         result = ControlResult(seq=message.seq, source=source, accepted=True, requested=requested)
-        if message.upscaler is not None:
-            # The worker answers the switch; the result waits for its reply.
-            asyncio.get_running_loop().create_task(self._set_upscaler(message.upscaler, result))
+        if message.upscaler is not None or message.cache_policy is not None:
+            # The worker answers; the result waits for its reply.
+            asyncio.get_running_loop().create_task(
+                self._to_worker(message.upscaler, message.cache_policy, result)
+            )
         else:
             self._report(result)
 
-    async def _set_upscaler(self, name: str, result: ControlResult) -> None:
+    async def _to_worker(
+        self, upscaler: str | None, cache_policy: str | None, result: ControlResult
+    ) -> None:
+        """Switch the method, then its cache policy; the first refusal ends the request."""
+        async with self._worker_turn:
+            refused = await self._switch_then_set_policy(upscaler, cache_policy)
+        if refused is not None:
+            result = result.model_copy(update={"accepted": False, "reason": refused})
+        self._report(result)
+
+    async def _switch_then_set_policy(
+        self, upscaler: str | None, cache_policy: str | None
+    ) -> str | None:
+        refused: str | None = None
+        if upscaler is not None:
+            refused = await self._ask_worker("upscaler", SetUpscaler(name=upscaler))
+            if refused is None:
+                log.info("upscaler switched to %s", upscaler)
+                # Jitter only helps a method that accumulates it; otherwise it is shimmer.
+                self._to_game(InputMessage(jitter=registry.is_temporal(upscaler)))
+                if self.on_upscaler_set is not None:
+                    self.on_upscaler_set(upscaler)
+        if cache_policy is not None and (upscaler is None or refused is None):
+            refused = await self._ask_worker("cache_policy", SetCachePolicy(policy=cache_policy))
+            if refused is None:
+                log.info("cache policy set to %s", cache_policy)
+        return refused
+
+    async def _ask_worker(self, field: str, message: SetUpscaler | SetCachePolicy) -> str | None:
+        """Send one control message; None if the worker accepted it, else why not."""
         assert self.worker_control is not None
         loop = asyncio.get_running_loop()
         try:
-            reply = await loop.run_in_executor(
-                None, send_control, self.worker_control, SetUpscaler(name=name)
-            )
+            reply = await loop.run_in_executor(None, send_control, self.worker_control, message)
         except (OSError, TimeoutError) as exc:
-            log.warning("upscaler switch to %s failed: %s", name, exc)
-            refused = f"upscaler: the worker did not answer ({exc})"
-            self._report(result.model_copy(update={"accepted": False, "reason": refused}))
-            return
-        if reply.get("ok"):
-            log.info("upscaler switched to %s", name)
-            # Jitter only helps a method that accumulates it; otherwise it is shimmer.
-            self._to_game(InputMessage(jitter=registry.is_temporal(name)))
-            if self.on_upscaler_set is not None:
-                self.on_upscaler_set(name)
-            self._report(result)
-        else:
-            log.warning("worker refused upscaler %s: %s", name, reply.get("error"))
-            refused = f"upscaler: the worker refused: {reply.get('error')}"
-            self._report(result.model_copy(update={"accepted": False, "reason": refused}))
+            log.warning("worker control %s failed: %s", message.op, exc)
+            return f"{field}: the worker did not answer ({exc})"
+        if not reply.get("ok"):
+            log.warning("worker refused %s: %s", message.op, reply.get("error"))
+            return f"{field}: the worker refused: {reply.get('error')}"
+        if self.on_cache_policy is not None:
+            policy = reply.get("cache_policy")
+            self.on_cache_policy(policy if isinstance(policy, str) else None)
+        return None

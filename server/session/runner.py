@@ -49,6 +49,7 @@ class StreamSettings:
     upscaler: str | None = None  # what the worker starts with (shown in the player)
     scale: float | None = None  # display / render size at start
     frame_generation: bool | None = None  # whether the game starts predicting every other frame
+    cache_policy: str | None = None  # the layer-cache policy the worker starts with, if any
     token: str | None = None  # JWT for the relay (sent as ?jwt=); None: an open relay
 
 
@@ -86,6 +87,7 @@ class StreamingSession:
             on_upscaler_set=self._upscaler_set,
             on_scale_request=self._scale_requested,
             on_frame_generation=self._frame_generation_set,
+            on_cache_policy=self._cache_policy_set,
         )
         self._on_upscaler_set = on_upscaler_set
         self._on_scale_request = on_scale_request
@@ -101,6 +103,8 @@ class StreamingSession:
             self.broadcast.stream_state["scale"] = round(settings.scale, 3)
         if settings.frame_generation is not None:
             self.broadcast.stream_state["frame_generation"] = settings.frame_generation
+        if settings.cache_policy is not None:
+            self.broadcast.stream_state["cache_policy"] = settings.cache_policy
         self.link: MoqLink | None = None
         self.connected = asyncio.Event()
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -126,6 +130,12 @@ class StreamingSession:
 
     def _frame_generation_set(self, on: bool) -> None:
         self.broadcast.stream_state["frame_generation"] = on
+
+    def _cache_policy_set(self, policy: str | None) -> None:
+        if policy is None:
+            self.broadcast.stream_state.pop("cache_policy", None)
+        else:
+            self.broadcast.stream_state["cache_policy"] = policy
 
     # -- running ---------------------------------------------------------------------
 

@@ -11,15 +11,11 @@ generated from these models (``python -m server.serve.control_schema``).
 
 from __future__ import annotations
 
-from typing import Literal
-
 from pydantic import BaseModel, ConfigDict, Field
 
+from server.config_types import CachePolicyName
+
 STATUS_TRACK = "status"
-# Fields a request may carry that this build validates but cannot apply yet.
-NOT_AVAILABLE = {
-    "cache_policy": "not available in this build (the upscaler cache lands with issue 5)",
-}
 
 
 class SessionControl(BaseModel):
@@ -35,8 +31,12 @@ class SessionControl(BaseModel):
         allow_inf_nan=False,
         description="display / render size; the game renders smaller from its next frame",
     )
-    cache_policy: Literal["off", "reuse", "aggressive"] | None = Field(
-        default=None, description="upscaler cache policy (refused: not available in this build)"
+    cache_policy: CachePolicyName | None = Field(
+        default=None,
+        max_length=64,
+        description="layer-cache policy of the upscaler (unet_cached): delta_l, delta_h, "
+        "budget, budget@DB, every_N, deepcache, motion, delta@SMAPE; refused for a method "
+        "without a cache",
     )
     frame_generation: bool | None = Field(
         default=None,
@@ -72,6 +72,11 @@ class StatusRecord(BaseModel):
     scale: float | None = Field(description="display / render size now")
     frame_generation: bool | None = Field(
         default=None, description="whether every other frame is predicted now"
+    )
+    cache_policy: str | None = Field(
+        default=None,
+        description="the layer-cache policy the worker reported at the last switch "
+        "(null: none reported, or the method has no cache)",
     )
     fps: float = Field(description="frames per second the session publishes (rolling)")
     frames: int = Field(description="frames published since the session started")

@@ -95,6 +95,14 @@ class CachedUpscaler:
     def config(self) -> str:
         return self.cache.config
 
+    def set_policy(self, policy: CachePolicy) -> None:
+        """Decide with ``policy`` from the next frame on. The cache is emptied, so that
+        frame refreshes (forced): the new policy starts from a full pass, with its
+        input probes, as on a first frame. History and statistics are kept."""
+        self.policy = policy
+        self.cache.probe_inputs = policy.decides_late
+        self._invalidate()
+
     def reset(self) -> None:
         """Forget history and cache (scene cut, size change); the policy keeps what it
         learned, and restarts its schedule on the forced refresh that follows."""

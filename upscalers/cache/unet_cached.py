@@ -37,6 +37,15 @@ class CachedUNetUpscaler(Upscaler):
         self.cached = CachedUpscaler(
             neural.load(self.network, device=device, dtype=dtype), policy, str(cache_level)
         )
+        self._policy = policy.strip()
+
+    @property
+    def cache_policy(self) -> str | None:
+        return self._policy
+
+    def set_cache_policy(self, policy: str) -> None:
+        self.cached.set_policy(make_policy(policy))
+        self._policy = policy.strip()
 
     @property
     def stats(self) -> CacheStats:
