@@ -90,6 +90,22 @@ def test_must_show_checks_evaluate_the_statements() -> None:
     assert not results["fast_yaw 2x: temporal PSNR not below bilinear"]
 
 
+def test_the_network_must_earn_one_db_over_bicubic_and_easu_rcas_on_each_scene() -> None:
+    cases = [
+        _case("static", "bicubic", 30.0, 0.10, 0.02),
+        _case("static", "easu_rcas", 30.5, 0.09, 0.02),
+        _case("static", "unet", 31.5, 0.08, 0.02),
+        _case("dolly", "bicubic", 28.0, 0.10, 0.02),
+        _case("dolly", "easu_rcas", 28.0, 0.10, 0.02),
+        _case("dolly", "unet", 28.9, 0.09, 0.02),
+    ]
+    results = dict(must_show_checks(cases))  # type: ignore[arg-type]
+    assert results["static 2x: unet >= bicubic + 1 dB (+1.50)"]
+    assert results["static 2x: unet >= easu_rcas + 1 dB (+1.00)"]
+    assert not results["dolly 2x: unet >= bicubic + 1 dB (+0.90)"]
+    assert sum("unet" in label for label in results) == 4
+
+
 def test_eval_command_writes_report_table_and_plot(tmp_path: Path) -> None:
     out = tmp_path / "eval.json"
     code = main(

@@ -338,7 +338,32 @@ def must_show_checks(cases: list[dict[str, Any]]) -> list[tuple[str, bool]]:
             checks.append(
                 (f"{scene} 2x: temporal PSNR not below bilinear", t["psnr_db"] >= b["psnr_db"])
             )
+    checks.extend(_network_checks(cases, scenes))
     checks.extend(_time_checks(cases))
+    return checks
+
+
+# Issue 5: a network is worth running only this far above the classical methods at 2x.
+NETWORK_MARGIN_DB = 1.0
+
+
+def _network_checks(cases: list[dict[str, Any]], scenes: list[str]) -> list[tuple[str, bool]]:
+    """Each neural method against bicubic and easu_rcas, per scene at 2x."""
+    checks = []
+    have = {(c["scene"], c["scale"], c["method"]) for c in cases}
+    for net in ("unet", "unetpp"):
+        for scene in scenes:
+            for base in ("bicubic", "easu_rcas"):
+                if (scene, 2.0, net) not in have or (scene, 2.0, base) not in have:
+                    continue
+                n, b = _case(cases, scene, 2.0, net), _case(cases, scene, 2.0, base)
+                gain = n["psnr_db"] - b["psnr_db"]
+                checks.append(
+                    (
+                        f"{scene} 2x: {net} >= {base} + {NETWORK_MARGIN_DB:g} dB ({gain:+.2f})",
+                        gain >= NETWORK_MARGIN_DB,
+                    )
+                )
     return checks
 
 
