@@ -199,6 +199,7 @@ def run_scene(
     render = Size(display.width // 2, display.height // 2)
     start = _start_time(scene, args.frames, args.fps)
     times = [start + i / args.fps for i in range(args.frames)]
+    # Jittered, so with the display size's texture mips: what the game sends a temporal method.
     renderer = Renderer(scene, render, seed=args.seed, scale=2.0, jitter=True)
     frames: list[RenderFrame] = [
         renderer.render(i, t, RenderTargets.allocate(render)) for i, t in enumerate(times)
@@ -387,6 +388,8 @@ def run(args: argparse.Namespace, load: LoadNetwork | None = None) -> int:
             "supersample": args.supersample,
             "fps": args.fps,
             "seed": args.seed,
+            "texture_mips": "jittered renders with the display size's mips (LOD bias -1), "
+            "as the game renders for temporal upscalers; ground truth the same mips",
             "threads": torch.get_num_threads(),
             "device": args.device,
             "load_average_start": _loadavg(),
