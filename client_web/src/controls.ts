@@ -1,20 +1,24 @@
-// Stream controls in the page: upscaler, scale factor, frame generation, keyframe request.
+// Stream controls in the page: upscaler, its cache policy, scale factor, frame generation,
+// keyframe request.
 // They travel on the same input track as keys and mouse (type "control"/"keyframe").
 import type { InputPublisher } from "./input";
 
 export const UPSCALERS = ["nearest", "bilinear", "bicubic", "lanczos2", "easu", "easu_rcas", "temporal", "unet", "unetpp", "unet_cached"] as const;
 export const SCALES = [1.5, 2, 3] as const;
+// Layer-cache policies of unet_cached (upscalers/cache/policies; any NAME@VALUE works too).
+export const CACHE_POLICIES = ["delta_l", "delta_h", "budget", "budget@43", "every_2", "every_5", "deepcache", "motion"] as const;
+const CACHED_UPSCALERS = new Set(["unet_cached"]);
 
 /** Keeps the selects on what the server runs, except right after the viewer changed one. */
 export interface Controls {
-	follow(upscaler: unknown, scale: unknown, frameGeneration: unknown): void;
+	follow(upscaler: unknown, scale: unknown, frameGeneration: unknown, cachePolicy: unknown): void;
 }
 
 // After a viewer's change the server takes a moment to switch; until then its records
 // still carry the old setting, which must not flip the select back.
 const HOLD_MS = 3000;
 
-export function mountControls(root: HTMLElement, publisher: InputPublisher): Controls {
+export function mountControls(root: HTMLElement, publisher: InputPublisher, viewOnly = false): Controls {
 	const upscaler = select(
 		"upscaler",
 		UPSCALERS.map((name) => [name, name]),
@@ -25,10 +29,26 @@ export function mountControls(root: HTMLElement, publisher: InputPublisher): Con
 		SCALES.map((s) => [String(s), `${s}x`]),
 		"2",
 	);
+	const cachePolicy = select(
+		"cache-policy",
+		CACHE_POLICIES.map((name) => [name, name]),
+		"delta_l",
+	);
+	cachePolicy.title = "when the cached upscaler reuses its deep layers (only unet_cached has a cache)";
+	// Only a method with a layer cache takes a policy; the server refuses it for the others.
+	const enableCachePolicy = (): void => {
+		cachePolicy.disabled = viewOnly || !CACHED_UPSCALERS.has(upscaler.value);
+	};
+	enableCachePolicy();
 	let changedAt = -Infinity;
 	upscaler.addEventListener("change", () => {
 		changedAt = performance.now();
+		enableCachePolicy();
 		publisher.send({ type: "control", upscaler: upscaler.value });
+	});
+	cachePolicy.addEventListener("change", () => {
+		changedAt = performance.now();
+		publisher.send({ type: "control", cache_policy: cachePolicy.value });
 	});
 	scale.addEventListener("change", () => {
 		changedAt = performance.now();
@@ -54,15 +74,26 @@ export function mountControls(root: HTMLElement, publisher: InputPublisher): Con
 
 	root.append(
 		label("upscaler", upscaler),
+		label("cache policy", cachePolicy),
 		label("scale", scale),
 		label("frame generation", frameGeneration),
 		keyframe,
 	);
 	return {
-		follow(serverUpscaler: unknown, serverScale: unknown, serverFrameGeneration: unknown): void {
+		follow(serverUpscaler: unknown, serverScale: unknown, serverFrameGeneration: unknown, serverCachePolicy: unknown): void {
 			if (performance.now() - changedAt < HOLD_MS) return;
 			if (typeof serverUpscaler === "string" && serverUpscaler !== upscaler.value) {
 				if ([...upscaler.options].some((o) => o.value === serverUpscaler)) upscaler.value = serverUpscaler;
+				enableCachePolicy();
+			}
+			if (typeof serverCachePolicy === "string" && serverCachePolicy !== cachePolicy.value) {
+				// A policy set elsewhere (upcast control) may not be in the list: show it anyway.
+				if (![...cachePolicy.options].some((o) => o.value === serverCachePolicy)) {
+					const option = document.createElement("option");
+					option.value = option.textContent = serverCachePolicy;
+					cachePolicy.append(option);
+				}
+				cachePolicy.value = serverCachePolicy;
 			}
 			if (typeof serverScale === "number") {
 				const match = [...scale.options].find((o) => Math.abs(Number(o.value) - serverScale) < 0.01);

@@ -10,7 +10,7 @@ export const INPUT_TRACK = "input";
 export type InputMessage =
 	| { type: "keys"; down: string[] }
 	| { type: "look"; dx: number; dy: number }
-	| { type: "control"; upscaler?: string; scale?: number; frame_generation?: boolean }
+	| { type: "control"; upscaler?: string; scale?: number; frame_generation?: boolean; cache_policy?: string }
 	| { type: "keyframe" };
 
 export type SentMessage = InputMessage & { seq: number; sent_ms: number };

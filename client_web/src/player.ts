@@ -102,7 +102,7 @@ function main(): void {
 	};
 	timing.onPresented = (record, presentUs) => {
 		inputToPhoton.presented(record, presentUs);
-		controls.follow(record.upscaler, record.scale, record.frame_generation);
+		controls.follow(record.upscaler, record.scale, record.frame_generation, record.cache_policy);
 		predictedFlags.push(record.predicted === true);
 		if (predictedFlags.length > PREDICTED_WINDOW) predictedFlags.shift();
 	};
@@ -120,7 +120,7 @@ function main(): void {
 	// would close the whole session on the announce, so a tokenless page only watches.
 	const viewOnly = config.token === null;
 	const controlsRoot = document.getElementById("controls") as HTMLElement;
-	const controls = mountControls(controlsRoot, publisher);
+	const controls = mountControls(controlsRoot, publisher, viewOnly);
 	if (viewOnly) {
 		for (const control of controlsRoot.querySelectorAll<HTMLSelectElement | HTMLButtonElement | HTMLInputElement>("select, button, input")) {
 			control.disabled = true;

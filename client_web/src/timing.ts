@@ -19,6 +19,8 @@ export interface TimingRecord {
 	scale?: number;
 	/** Whether the game renders every other frame and the server predicts the rest. */
 	frame_generation?: boolean;
+	/** The layer-cache policy of a cached upscaler (unet_cached), absent for the others. */
+	cache_policy?: string;
 	/** Wall-clock microseconds since the epoch, by stage label. */
 	stamps: Record<string, number>;
 }

@@ -97,7 +97,11 @@ def test_inputs_reach_the_game_and_input_to_photon_is_measured(page: Any) -> Non
     page.mouse.down()
     page.mouse.move(box["x"] + 90, box["y"] + 60, steps=4)
     page.mouse.up()
+    assert page.is_disabled("#cache-policy")  # easu_rcas has no layer cache
+    page.select_option("#upscaler", "unet_cached")
+    page.select_option("#cache-policy", "budget")
     page.select_option("#upscaler", "lanczos2")
+    assert page.is_disabled("#cache-policy")
     page.select_option("#scale", "3")
     page.click("#keyframe")
     page.wait_for_function("() => window.loopback.inputs.some(m => m.type === 'keyframe')")
@@ -106,6 +110,9 @@ def test_inputs_reach_the_game_and_input_to_photon_is_measured(page: Any) -> Non
     assert ("keys", ["w"], None, None) in kinds
     assert ("keys", [], None, None) in kinds
     assert ("control", None, "lanczos2", None) in kinds
+    assert {"type": "control", "cache_policy": "budget"} in [
+        {k: m[k] for k in ("type", "cache_policy") if k in m} for m in inputs
+    ]
     assert ("control", None, None, 3) in kinds
     looks = [m for m in inputs if m["type"] == "look"]
     assert looks and sum(m["dx"] for m in looks) == pytest.approx(40)

@@ -17,8 +17,8 @@ def _settled(page: Any) -> dict[str, Any]:
     return page.evaluate(  # type: ignore[no-any-return]
         "() => ({viewOnly: window.upcast.viewOnly, url: window.upcast.config.url.toString(),"
         " hint: document.querySelector('.hint').textContent,"
-        " disabled: [...document.querySelectorAll('#controls select, #controls button')]"
-        ".map(e => e.disabled)})"
+        " disabled: Object.fromEntries([...document.querySelectorAll("
+        "'#controls select, #controls button')].map(e => [e.id, e.disabled]))})"
     )
 
 
@@ -29,7 +29,7 @@ def test_without_token_the_page_is_view_only(web_root: str, browser: Any) -> Non
     assert errors == []
     assert state["viewOnly"] is True
     assert "view only" in state["hint"] and "inputs are off" in state["hint"]
-    assert state["disabled"] and all(state["disabled"])
+    assert state["disabled"] and all(state["disabled"].values())
     assert "jwt" not in state["url"]
 
 
@@ -41,4 +41,6 @@ def test_token_rides_on_the_relay_url(web_root: str, browser: Any) -> None:
     assert errors == []
     assert state["viewOnly"] is False
     assert state["url"] == f"{relay}?jwt=abc.def.ghi"
-    assert not any(state["disabled"])
+    # Every control is on, except the cache policy while the upscaler has no layer cache.
+    assert state["disabled"].pop("cache-policy") is True
+    assert state["disabled"] and not any(state["disabled"].values())
