@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 from pathlib import Path
 
 import numpy as np
@@ -335,3 +336,40 @@ def test_train_refuses_bad_arguments(bad: list[str], tmp_path: Path) -> None:
         main(["train", *bad, "--data-dir", str(tmp_path), "--out", str(tmp_path / "x.pt")])
     assert exc.value.code != 0
     assert not (tmp_path / "x.pt").exists()
+
+
+def test_cache_aware_training_reuses_the_deep_branch_and_keeps_the_weight_names(
+    tmp_path: Path,
+) -> None:
+    from server.train import loop
+    from server.train.dataset import DatasetSpec
+    from server.train.loop import TrainConfig, train
+    from upscalers.cache.layer_cache import BranchAction, CachedBranch
+    from upscalers.neural.network import build_model
+
+    data = generate(
+        DatasetSpec(sequences=1, frames=4, render_size="32x24", scenes=("static",)),
+        progress=False,
+    )
+    model = build_model("unet", 2)
+    names = set(model.state_dict())
+    actions: list[BranchAction] = []
+    forward = CachedBranch.forward
+
+    def spy(self: CachedBranch, *args: object, **kwargs: object) -> object:
+        out = forward(self, *args, **kwargs)
+        actions.append(self.last_action)
+        return out
+
+    cfg = TrainConfig(steps=2, batch=2, crop=16, cached_share=1.0)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(CachedBranch, "forward", spy)
+        result = train(model, data, cfg, 2, progress=False)
+    assert math.isfinite(result.final_loss)
+    # Every frame after an unroll's first reused what the frame before it kept.
+    assert BranchAction.REUSED in actions and BranchAction.COMPUTED in actions
+    assert set(model.state_dict()) == names  # the wrappers are gone again
+    assert not any(isinstance(m, CachedBranch) for m in model.modules())
+    with pytest.raises(ValueError, match="cached_share"):
+        train(model, data, TrainConfig(steps=1, cached_share=1.5), 2, progress=False)
+    assert loop.TrainConfig().cached_share == 0.0  # off unless asked

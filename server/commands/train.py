@@ -44,6 +44,16 @@ def _positive_float(text: str) -> float:
     return value
 
 
+def _share(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not 0.0 <= value <= 1.0:
+        raise argparse.ArgumentTypeError(f"must be in [0, 1], got {value}")
+    return value
+
+
 def _mip_bias(text: str, render: Size, scale: int) -> float:
     """``--mip-bias`` as the number the dataset key records."""
     from server.render.mip_bias import parse_mip_bias
@@ -93,6 +103,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--batch", type=_positive_int, default=8, help="crops per step")
     parser.add_argument("--crop", type=_positive_int, default=96, help="crop side, render px")
     parser.add_argument("--lr", type=_positive_float, default=1e-3, help="peak learning rate")
+    parser.add_argument(
+        "--cache-aware",
+        type=_share,
+        default=0.0,
+        help="share of unrolled frames (after the first) that reuse the previous frame's "
+        "deep-branch output at the default cache point, so the network learns to serve "
+        "layer-cached frames (0: off)",
+    )
     parser.add_argument("--threads", type=_positive_int, default=2, help="torch CPU threads")
     parser.add_argument(
         "--scenes", default="all", help="comma-separated scenes to render (default all)"
@@ -154,6 +172,7 @@ def run(args: argparse.Namespace) -> int:
         lr=args.lr,
         seed=args.seed,
         minutes=args.minutes,
+        cached_share=args.cache_aware,
     )
     result = train(model, data, cfg, scale)
     if result.stopped_early:
@@ -173,6 +192,7 @@ def run(args: argparse.Namespace) -> int:
         "batch": cfg.batch,
         "crop": cfg.crop,
         "lr": cfg.lr,
+        "cache_aware": cfg.cached_share,
         "final_l1": result.final_loss,
         "train_seconds": round(result.seconds, 1),
         "data_seconds": round(data_s, 1),

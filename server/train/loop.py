@@ -7,6 +7,14 @@ the network sees its own previous output warped by the motion vectors, as it
 will when upscaling. The start frame has no history, so the first frame after
 a cut or a reset is trained too. History is detached between frames.
 
+Cache-aware training (``cached_share`` > 0): the network's deep branch at its
+default cache point (``upscalers/cache``) is wrapped in a ``LayerCache``, and
+each frame after the first of an unroll reuses the branch output kept from the
+previous frame with that probability, as a cached frame does when upscaling.
+Frames then differ by their jitter as well as by motion, and a network trained
+only on fresh deep features draws fine texture detail from them that a stale
+copy gets wrong; trained on both, its shallow levels learn to carry that detail.
+
 Deterministic from the seed on one machine: every random choice comes from
 generators seeded here, and torch's CPU kernels are deterministic for these ops.
 """
@@ -15,6 +23,8 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,6 +35,7 @@ from torch import nn
 from server.progress import elapsed_and_left
 from server.progress import progress as report_progress
 from server.train.dataset import Dataset
+from upscalers.cache.layer_cache import CacheMode, LayerCache
 from upscalers.neural.features import FrameTensors, History, build_features
 from upscalers.neural.network import predict
 
@@ -41,6 +52,9 @@ class TrainConfig:
     seed: int = 0
     minutes: float | None = None  # stop early (and say so) past this wall time
     log_every: int = 10
+    # Share of unrolled frames after the first that reuse the previous frame's deep
+    # branch output (cache-aware training; 0: never).
+    cached_share: float = 0.0
 
 
 @dataclass
@@ -113,10 +127,41 @@ def _lr_at(step: int, cfg: TrainConfig) -> float:
     return cfg.final_lr + 0.5 * (cfg.lr - cfg.final_lr) * (1.0 + math.cos(math.pi * p))
 
 
+@contextmanager
+def _cache_mode(cache: LayerCache | None, reuse: bool) -> Iterator[None]:
+    if cache is None:
+        yield
+        return
+    with cache.using(CacheMode.REUSE if reuse else CacheMode.REFRESH):
+        yield
+
+
 def train(
     model: nn.Module, data: Dataset, cfg: TrainConfig, scale: int, progress: bool = True
 ) -> TrainResult:
+    if not 0.0 <= cfg.cached_share <= 1.0:
+        raise ValueError(f"cached_share must be in [0, 1], got {cfg.cached_share}")
+    # The cache installs wrappers in place of the deep branch: restored before returning,
+    # so the model's parameters and state-dict names stay what they were.
+    cache = LayerCache(model) if cfg.cached_share > 0 else None
+    try:
+        return _train(model, data, cfg, scale, progress, cache)
+    finally:
+        if cache is not None:
+            cache.restore()
+
+
+def _train(
+    model: nn.Module,
+    data: Dataset,
+    cfg: TrainConfig,
+    scale: int,
+    progress: bool,
+    cache: LayerCache | None,
+) -> TrainResult:
     rng = np.random.default_rng(cfg.seed)
+    # Its own generator: runs without the cache draw the same batches as before it.
+    cache_rng = np.random.default_rng([cfg.seed, 1])
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     model.train()
     started = time.monotonic()
@@ -133,8 +178,11 @@ def train(
         history: History | None = None
         opt.zero_grad(set_to_none=True)
         losses = []
-        for ft, gt in zip(frames, truths, strict=True):
-            with torch.set_grad_enabled(gt is not None):
+        if cache is not None:
+            cache.invalidate()  # new crops: nothing kept belongs to them
+        for i, (ft, gt) in enumerate(zip(frames, truths, strict=True)):
+            reuse = cache is not None and i > 0 and cache_rng.random() < cfg.cached_share
+            with torch.set_grad_enabled(gt is not None), _cache_mode(cache, reuse):
                 x, dfeat = build_features(ft, history, scale)
                 y = predict(model, x, scale)
             if gt is not None:
