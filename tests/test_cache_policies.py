@@ -178,6 +178,25 @@ def test_budget_policy_sets_its_run_from_the_audits() -> None:
     assert p.run_limit == 4 and p.audits == 0
 
 
+def test_budget_policy_audits_first_and_backs_off_where_the_cache_cannot_serve() -> None:
+    p = BudgetPolicy(35.0, margin_db=1.0)
+    x = torch.ones(1, 3, 4, 4)
+
+    def early(run: int) -> bool:
+        return p.decide(_signals(x, x, since=run))
+
+    assert not early(1) and p.refresh_late(0.1)  # run limit 0: the first candidate is audited
+    p.observe_audit(0.1, 30.0)  # misses: the next frame refreshes without a cached pass
+    assert early(1) and not early(1) and p.refresh_late(0.1)
+    p.observe_audit(0.1, 30.0)  # misses again: two frames now
+    assert early(1) and early(1) and not early(1) and p.refresh_late(0.1)
+    p.observe_audit(0.1, 37.5)  # 1.5 dB headroom at run 1: serve one, and the backoff ends
+    assert p.run_limit == 1 and not early(1) and not p.refresh_late(0.1)
+    assert not early(2) and p.refresh_late(0.1)
+    p.observe_audit(0.1, 20.0)
+    assert p.run_limit == 0 and early(1) and not early(1)  # a cooldown of 1 again
+
+
 def test_psnr_of_tensors() -> None:
     a = torch.zeros(3, 4, 4)
     assert psnr_db(a, a) == math.inf

@@ -152,24 +152,28 @@ def test_resolution_change_invalidates_the_cache() -> None:
 
 
 def test_budget_policy_audits_its_own_refreshes() -> None:
-    policy = make_policy("budget@150")  # a budget no stale output meets: the run must shrink
+    policy = make_policy("budget@150")  # a budget no stale output meets
     _, cached = _pair(policy=policy)
-    start = policy.run_limit  # type: ignore[attr-defined]
     for frame in _frames(12, shift=2):
         cached.upscale(frame, DISPLAY)
-    assert cached.stats.audits >= 1
-    assert policy.run_limit < start  # type: ignore[attr-defined]
+    # Nothing unaudited is served: the first candidate was audited, and failed.
+    assert cached.stats.audits >= 1 and cached.stats.cached == 0
+    assert policy.run_limit == 0  # type: ignore[attr-defined]
 
 
 def test_a_late_refresh_gives_the_full_output_and_audits_the_cached_one() -> None:
-    """Run limit 0: every frame the cache could serve is refreshed after the cached path
-    ran, so every output equals the uncached network's, bit for bit, and every such
-    frame is one audit."""
-    plain, cached = _pair(policy=BudgetPolicy(150.0, start_run=0))
-    for frame in _frames(6, shift=2):
+    """Run limit 0: a frame the cache could serve is refreshed after the cached path ran,
+    so every output equals the uncached network's, bit for bit; each failed audit is
+    followed by a cooldown of 1, 2, 4 ... frames that refresh without the cached pass."""
+    plain, cached = _pair(policy=BudgetPolicy(150.0, start_run=0, max_cooldown=2))
+    actions = []
+    for frame in _frames(10, shift=2):
         assert torch.equal(cached.upscale(frame, DISPLAY), plain.upscale(frame, DISPLAY))
-    assert cached.stats.refreshes == 6 and cached.stats.forced == 1
-    assert cached.stats.audits == 5 and cached.stats.cached == 0
+        actions.append("a" if cached.stats.audits > actions.count("a") else "r")
+    # Frame 0 forced; frame 1 a structural refresh (history appears: its audit does not
+    # judge the run); then audit, cooldown 1; audit, cooldown 2; audit, cooldown 2 (cap).
+    assert "".join(actions) == "r" + "a" + "ar" + "arr" + "arr"
+    assert cached.stats.refreshes == 10 and cached.stats.cached == 0
 
 
 def test_budget_policy_lengthens_its_runs_when_the_audits_have_headroom() -> None:

@@ -22,7 +22,12 @@ What decides instead (late: the cached path runs first, then the policy looks):
   h = p - B - ``margin_db`` (B the budget), the next limit is n 2 ** (h / S) with
   S = ``db_per_doubling`` (3 dB, three times the measured slope: a bad guess
   errs short), at least n when h >= 0 (n was just measured to be within budget),
-  at most 2n, and below n when h < 0.
+  at most 2n, and below n when h < 0. It starts at 0: the first frame the cache
+  could serve is audited instead, so nothing unaudited is ever served.
+- **Backing off where the cache cannot serve.** When even one cached frame misses
+  the budget (the limit stays 0), auditing every frame would cost a cached pass on
+  top of every full one. The policy then refreshes the next 1, 2, 4 ... 32 frames
+  without trying, and audits again after each such cooldown.
 - **A structural change of the cached branch's input.** ``LayerCache.input_delta()``
   is the SMAPE of the deep branch's input now against when its output was kept.
   Over ``structure_limit`` the kept output belongs to another kind of input and
@@ -64,7 +69,13 @@ from upscalers.cache.signals import FrameSignals
 DEFAULT_BUDGET_DB = 45.0
 # Cache-point input delta that means "another kind of input" (see the docstring).
 DEFAULT_STRUCTURE_LIMIT = 0.5
-DEFAULT_START_RUN = 2
+# No cached frame is served before an audit has shown one would meet the budget.
+DEFAULT_START_RUN = 0
+# While even one cached frame misses the budget, the audits back off: after each
+# failed audit at run 1 the next 1, 2, 4 ... (at most this many) frames refresh
+# without the cached pass, so a scene the cache cannot serve costs about uncached
+# time, not uncached time plus a cached pass per frame.
+DEFAULT_MAX_COOLDOWN = 32
 
 
 def psnr_db(reference: torch.Tensor, test: torch.Tensor) -> float:
@@ -86,6 +97,7 @@ class BudgetPolicy(CachePolicy):
         margin_db: float = 4.0,
         db_per_doubling: float = 3.0,
         max_run: int = 240,
+        max_cooldown: int = DEFAULT_MAX_COOLDOWN,
     ) -> None:
         if not math.isfinite(budget_db):
             raise ValueError(f"budget must be a finite PSNR in dB, got {budget_db}")
@@ -93,20 +105,28 @@ class BudgetPolicy(CachePolicy):
             raise ValueError("need 0 <= start_run <= max_run")
         if not structure_limit > 0 or margin_db < 0 or not db_per_doubling > 0:
             raise ValueError("need structure_limit > 0, margin_db >= 0, db_per_doubling > 0")
+        if max_cooldown < 0:
+            raise ValueError("need max_cooldown >= 0")
         self.budget_db = budget_db
         self.start_run = start_run
         self.structure_limit = structure_limit
         self.margin_db = margin_db
         self.db_per_doubling = db_per_doubling
         self.max_run = max_run
+        self.max_cooldown = max_cooldown
         self.name = "budget" if budget_db == DEFAULT_BUDGET_DB else f"budget@{budget_db:g}"
         self.run_limit = start_run
         self.audits = 0
         self._run = 0  # cached frames this one would make in a row (1: right after a refresh)
         self._for_run = False  # whether the pending refresh is the run limit's
+        self._backoff = 0  # length of the last cooldown (0: the last audit passed)
+        self._cooldown = 0  # frames left that refresh without a cached pass
 
     def _refresh_now(self, signals: FrameSignals) -> bool:
         self._run = signals.since_refresh
+        if self._cooldown > 0:  # the cache cannot serve this scene now: do not try
+            self._cooldown -= 1
+            return True
         return False  # decided after the cached path ran (refresh_late)
 
     def refresh_late(self, input_delta: float) -> bool:
@@ -123,13 +143,18 @@ class BudgetPolicy(CachePolicy):
         if headroom_db >= 0:
             grown = n * min(2.0, 2.0 ** (headroom_db / self.db_per_doubling))
             self.run_limit = min(self.max_run, max(n, math.floor(grown)))
+            self._backoff = 0
         else:
             shrunk = math.floor(n * 2.0 ** (headroom_db / self.db_per_doubling))
             self.run_limit = max(0, min(n - 1, shrunk))
+            if self.run_limit == 0:
+                self._backoff = min(self.max_cooldown, max(1, 2 * self._backoff))
+                self._cooldown = self._backoff
 
     def reset(self) -> None:
         self.run_limit = self.start_run
         self.audits = 0
+        self._backoff = self._cooldown = 0
 
     def describe(self) -> str:
         return (
