@@ -28,15 +28,19 @@ What decides instead (late: the cached path runs first, then the policy looks):
   the budget (the limit stays 0), auditing every frame would cost a cached pass on
   top of every full one. The policy then refreshes the next 1, 2, 4 ... 32 frames
   without trying, and audits again after each such cooldown.
+- **History appearing.** A forced refresh (start, cut, bad input) ran on a frame
+  without history, so its deep features are wrong for every later frame (with the
+  first weights: never refreshing after frame 0 left 43-46 dB, refreshing once more
+  at frame 1 left 50-54 dB on the still scenes). The frame after one is refreshed
+  too, decided early, so it costs no cached pass.
 - **A structural change of the cached branch's input.** ``LayerCache.input_delta()``
   is the SMAPE of the deep branch's input now against when its output was kept.
   Over ``structure_limit`` the kept output belongs to another kind of input and
-  the policy refreshes whatever the run length. The case that matters: the
-  first frame after a start or a cut has no history, so its deep features are
-  wrong for every later frame (never refreshing after frame 0 leaves 43-46 dB;
-  refreshing once more at frame 1 leaves 50-54 dB on the still scenes); the
-  branch input then changes by 0.7-1.0 against 0.1-0.3 for a frame's motion.
-  Those audits do not move the run limit: they measure the structure, not the run.
+  the policy refreshes whatever the run length. Since the game renders jittered
+  frames with the display size's mips, consecutive frames of the still scene
+  differ there by 0.44-1.04 from the jitter alone, and the frame where history
+  appears by 1.5, so the limit is 1.5 (it was 0.5 on blurrier mips). Those
+  audits do not move the run limit: they measure the structure, not the run.
 
 **Why the margin is 4 dB.** An audit sees the staleness of one frame: cached and
 full output on the same input. What a viewer gets, and what ``bench reframe``
@@ -68,7 +72,7 @@ from upscalers.cache.signals import FrameSignals
 # scenes differ, which is when a policy that adapts should beat a fixed threshold.
 DEFAULT_BUDGET_DB = 45.0
 # Cache-point input delta that means "another kind of input" (see the docstring).
-DEFAULT_STRUCTURE_LIMIT = 0.5
+DEFAULT_STRUCTURE_LIMIT = 1.5
 # No cached frame is served before an audit has shown one would meet the budget.
 DEFAULT_START_RUN = 0
 # While even one cached frame misses the budget, the audits back off: after each
@@ -121,9 +125,13 @@ class BudgetPolicy(CachePolicy):
         self._for_run = False  # whether the pending refresh is the run limit's
         self._backoff = 0  # length of the last cooldown (0: the last audit passed)
         self._cooldown = 0  # frames left that refresh without a cached pass
+        self._after_forced = False  # the last frame was a forced refresh (no history)
 
     def _refresh_now(self, signals: FrameSignals) -> bool:
         self._run = signals.since_refresh
+        if self._after_forced:  # history appears on this frame: see the module doc
+            self._after_forced = False
+            return True
         if self._cooldown > 0:  # the cache cannot serve this scene now: do not try
             self._cooldown -= 1
             return True
@@ -151,7 +159,11 @@ class BudgetPolicy(CachePolicy):
                 self._backoff = min(self.max_cooldown, max(1, 2 * self._backoff))
                 self._cooldown = self._backoff
 
+    def _restart(self) -> None:
+        self._after_forced = True
+
     def reset(self) -> None:
+        self._after_forced = False
         self.run_limit = self.start_run
         self.audits = 0
         self._backoff = self._cooldown = 0
