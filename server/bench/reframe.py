@@ -44,8 +44,8 @@ if TYPE_CHECKING:
 
     U8 = npt.NDArray[np.uint8]
 
-MAIN_POLICIES = "delta_h,delta_l,every_2,every_5,deepcache,motion,budget,budget@43"
-SWEEP = "delta@0.01,delta@0.02,delta@0.03,delta@0.04,delta@0.06,delta@0.12,delta@2"
+MAIN_POLICIES = "delta_h,delta_l,every_2,every_5,deepcache,motion,budget,budget@41"
+SWEEP = "delta@0.04,delta@0.06,delta@0.07,delta@0.1,delta@0.15,delta@2"
 ABLATION = "unet:2,unet:3,unetpp:A,unetpp:B"
 ABLATION_SCENES = "slow_pan,fast_yaw,default"
 ABLATION_POLICY = "delta_l"
