@@ -6,7 +6,7 @@ import type { InputPublisher } from "./input";
 export const UPSCALERS = ["nearest", "bilinear", "bicubic", "lanczos2", "easu", "easu_rcas", "temporal", "unet", "unetpp", "unet_cached"] as const;
 export const SCALES = [1.5, 2, 3] as const;
 // Layer-cache policies of unet_cached (upscalers/cache/policies; any NAME@VALUE works too).
-export const CACHE_POLICIES = ["delta_l", "delta_h", "budget", "budget@43", "every_2", "every_5", "deepcache", "motion"] as const;
+export const CACHE_POLICIES = ["delta_l", "delta_h", "budget", "budget@41", "every_2", "every_5", "deepcache", "motion"] as const;
 const CACHED_UPSCALERS = new Set(["unet_cached"]);
 
 /** Keeps the selects on what the server runs, except right after the viewer changed one. */
