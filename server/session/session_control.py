@@ -75,8 +75,8 @@ class StatusRecord(BaseModel):
     )
     cache_policy: str | None = Field(
         default=None,
-        description="the layer-cache policy the worker reported at the last switch "
-        "(null: none reported, or the method has no cache)",
+        description="the layer-cache policy the worker runs, as configured at start or "
+        "reported at the last switch (null: the method has no cache)",
     )
     fps: float = Field(description="frames per second the session publishes (rolling)")
     frames: int = Field(description="frames published since the session started")
