@@ -172,7 +172,7 @@ class LocalStack:
                 "--ring-out",
                 self.ring_u_name,
                 "--upscaler",
-                c.upscaler,
+                self.upscaler,
                 "--display-size",
                 c.display_size,
                 "--control",

@@ -366,3 +366,23 @@ def test_duration_ends_the_session_cleanly() -> None:
     assert name.startswith("upcast-")
     assert sorted(p.name for p in SHM_DIR.glob(f"{name}*")) == []
     assert "cleaned up" in done.stderr
+
+
+def test_a_restarted_worker_starts_with_the_method_switched_to(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from server import stack as stack_module
+    from server.stack import LocalStack, SessionConfig
+
+    launched: list[list[str]] = []
+    monkeypatch.setattr(stack_module.subprocess, "Popen", lambda argv, **_: launched.append(argv))
+    stack = LocalStack(SessionConfig(upscaler="bilinear", cache_policy="budget@41"))
+    stack._spawn_worker()
+    stack.remember_upscaler("unet_cached")  # a run-time switch the worker accepted
+    stack._spawn_worker()  # what check_children does when the worker died
+
+    def option(argv: list[str], flag: str) -> str:
+        return argv[argv.index(flag) + 1]
+
+    assert [option(a, "--upscaler") for a in launched] == ["bilinear", "unet_cached"]
+    assert all(option(a, "--cache-policy") == "budget@41" for a in launched)
