@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import platform
 import shlex
 import sys
@@ -56,14 +55,14 @@ def _share(text: str) -> float:
 
 def _mip_bias(text: str, render: Size, scale: int) -> float:
     """``--mip-bias`` as the number the dataset key records."""
-    from server.render.mip_bias import parse_mip_bias
+    from server.render.mip_bias import game_lod_bias, parse_mip_bias
 
     try:
         bias = parse_mip_bias(text, render, render.scaled(scale))
     except ValueError as e:
         raise SystemExit(str(e)) from None
-    # Training renders are all jittered: the game gives those the display size's mips.
-    return -math.log2(scale) if bias is None else bias
+    # Training renders are all jittered: the game's choice for those.
+    return game_lod_bias(True, scale) if bias is None else bias
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

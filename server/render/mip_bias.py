@@ -22,6 +22,12 @@ MIP_BIAS_HELP = (
 )
 
 
+def game_lod_bias(jitter: bool, scale: float) -> float:
+    """The game's choice: the display size's mips for a jittered render, log2(render /
+    display) = -log2(scale); the render size's (0) for an unjittered one."""
+    return -math.log2(scale) if jitter and scale > 0 else 0.0
+
+
 def parse_mip_bias(text: str, render: Size, display: Size) -> float | None:
     """The fixed bias ``text`` asks for, or None for the renderer's own choice ('game')."""
     word = text.strip()

@@ -10,7 +10,6 @@ to the current ones and zero motion.
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -19,6 +18,7 @@ import torch
 from server.frame import Camera, F32Array, FrameFlags, FrameMeta, RenderFrame, Size, U8Array
 from server.render.camera import CameraInput, CameraPose, GameCamera, InputState
 from server.render.intersect import ClassHits, depth_pass, fmask
+from server.render.mip_bias import game_lod_bias
 from server.render.motion import depth_from_s, object_motion, static_motion
 from server.render.rays import FrameSetup, ObjectInstance, RayGrid, make_grid
 from server.render.scene import Scene
@@ -151,7 +151,6 @@ class Renderer:
         self.atlas: TextureAtlas = texture_atlas(str(self.device))
         self.fixed_lod_bias = texture_lod_bias
         self._entries_by_bias: dict[float, dict[str, MaterialEntry]] = {}
-        self.entries = self._entries_for(self.texture_lod_bias)
         self.game_camera = GameCamera()
         self._last_t: float | None = None
         self._last_input: InputState = self.game_camera.state
@@ -161,7 +160,12 @@ class Renderer:
         """The mip bias of the next frame (see the class doc)."""
         if self.fixed_lod_bias is not None:
             return self.fixed_lod_bias
-        return -math.log2(self.scale) if self.jitter and self.scale > 0 else 0.0
+        return game_lod_bias(self.jitter, self.scale)
+
+    @property
+    def entries(self) -> dict[str, MaterialEntry]:
+        """Material table of the next frame, for its mip bias (built once per bias)."""
+        return self._entries_for(self.texture_lod_bias)
 
     def _entries_for(self, bias: float) -> dict[str, MaterialEntry]:
         entries = self._entries_by_bias.get(bias)
@@ -181,7 +185,6 @@ class Renderer:
         """Jitter the camera (temporal upscalers) or not (spatial ones), from the next frame."""
         self.jitter = on
         self.jitter_phases = jitter_phase_count(self.scale)
-        self.entries = self._entries_for(self.texture_lod_bias)
 
     def set_render_size(self, render_size: Size, scale: float) -> None:
         """Render at another size from the next frame on (the player changed the scale).
@@ -191,7 +194,6 @@ class Renderer:
         self.jitter_phases = jitter_phase_count(scale)
         self.render_size = Size(*render_size)
         self.scale = scale
-        self.entries = self._entries_for(self.texture_lod_bias)
         self._last_t = None
 
     def jitter_for(self, frame_index: int) -> tuple[float, float]:
