@@ -17,11 +17,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import torch
 from pydantic import BaseModel, ConfigDict, Field
 
 from server.config_types import CachePolicyName, PredictorName, SizeText, UpscalerName
 from server.control import ControlServer, GetStatus, SetCachePolicy, SetUpscaler, parse_message
+from server.cpu_threads import set_cpu_threads
 from server.frame import FrameFlags, Size
 from server.metrics_process import serve_metrics, worker_registry
 from server.ring import FrameRing
@@ -199,26 +199,10 @@ class UpscaleWorker:
                 log.info("worker: %s", self.status())
 
 
-def _limit_compiled_threads(threads: int) -> None:
-    """numba's parallel kernels (MPE on the CPU) get the same thread budget as torch.
-
-    Unlimited they take every core, and their threads spin-wait between kernels over
-    the core the game renders on: at 40 fps with frame generation on 2 cores that
-    lost 22 frames in 20 s against 0 without prediction. The limit is per calling
-    thread in numba, so it is set on the thread that predicts (this one).
-    """
-    try:
-        import numba
-    except ImportError:  # numba only serves MPE on the CPU
-        return
-    most: int = getattr(numba.config, "NUMBA_NUM_THREADS", 1)  # numba's own maximum
-    numba.set_num_threads(max(1, min(threads, most)))
-
-
 def run_worker(config: WorkerConfig, stop: threading.Event | None = None) -> int:
     """Attach to the rings and upscale until stopped (SIGTERM/SIGINT)."""
-    torch.set_num_threads(config.threads)
-    _limit_compiled_threads(config.threads)
+    # Set here, on the thread that upscales and predicts: numba's limit is per thread.
+    set_cpu_threads(config.threads)
     stop = stop or threading.Event()
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGTERM, signal.SIGINT):

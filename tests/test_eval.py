@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from server.cli import main
-from server.eval.methods import compiled_variants, parse_method
+from server.eval.methods import compiled_variants, eager_torch_variants, parse_method
 from server.eval.upscalers import _frames_per_method, must_show_checks
 from server.frame import RenderFrame, Size
 from server.render.mip_bias import parse_mip_bias
@@ -215,3 +215,13 @@ def test_compile_flag_adds_compiled_variants() -> None:
     assert spec.options == {"sharpness": 1.0, "compile": True}
     with pytest.raises(ValueError, match="no compiled path"):
         parse_method("bicubic+compiled")
+
+
+def test_eager_torch_flag_adds_torch_variants() -> None:
+    assert eager_torch_variants(["bicubic", "easu_rcas@1", "easu", "easu+compiled"]) == [
+        "easu_rcas@1+torch",
+        "easu+torch",
+    ]
+    assert parse_method("easu_rcas@1+torch").options == {"sharpness": 1.0, "backend": "torch"}
+    with pytest.raises(ValueError, match="no numba kernel"):
+        parse_method("bicubic+torch")

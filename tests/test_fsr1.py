@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Callable
+from functools import partial
 
 import numpy as np
 import pytest
@@ -12,11 +14,17 @@ import torch
 import torch.nn.functional as F
 
 from server.frame import Camera, FrameMeta, RenderFrame, Size
+from upscalers.base import Upscaler
 from upscalers.fsr1 import EasuRcasUpscaler, EasuUpscaler
 from upscalers.fsr1_easu import Easu
 from upscalers.fsr1_rcas import RCAS_LIMIT, Rcas
 from upscalers.lanczos import Lanczos2Upscaler
 from upscalers.output import to_uint8
+
+# The float results of the torch path (the reference and the CUDA path); the numba CPU
+# kernels, which return 8-bit results, are compared with it in test_fsr1_cpu.py.
+TorchEasu = partial(EasuUpscaler, backend="torch")
+TorchEasuRcas = partial(EasuRcasUpscaler, backend="torch")
 
 TAPS = ((0, -1), (1, -1), (-1, 0), (0, 0), (1, 0), (2, 0),
         (-1, 1), (0, 1), (1, 1), (2, 1), (0, 2), (1, 2))  # fmt: skip
@@ -143,9 +151,9 @@ def test_rcas_matches_per_pixel_transcription() -> None:
 # --- invariants --------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("make", [EasuUpscaler, EasuRcasUpscaler, Lanczos2Upscaler])
+@pytest.mark.parametrize("make", [TorchEasu, TorchEasuRcas, Lanczos2Upscaler])
 @pytest.mark.parametrize("value", [0, 1, 128, 254, 255])
-def test_constant_images_stay_exactly_constant(make: type, value: int) -> None:
+def test_constant_images_stay_exactly_constant(make: Callable[[], Upscaler], value: int) -> None:
     color = np.full((17, 33, 3), value, np.uint8)
     for display in (Size(66, 34), Size(50, 26)):
         out = make().upscale(make_frame(color), display)
@@ -157,8 +165,8 @@ def test_constant_images_stay_exactly_constant(make: type, value: int) -> None:
             assert torch.equal(out, torch.full_like(out, value / 255.0))
 
 
-@pytest.mark.parametrize("make", [EasuUpscaler, EasuRcasUpscaler, Lanczos2Upscaler])
-def test_extreme_values_stay_in_range(make: type) -> None:
+@pytest.mark.parametrize("make", [TorchEasu, TorchEasuRcas, Lanczos2Upscaler])
+def test_extreme_values_stay_in_range(make: Callable[[], Upscaler]) -> None:
     rng = np.random.default_rng(3)
     color = (rng.integers(0, 2, (24, 40, 3)) * 255).astype(np.uint8)  # only 0 and 255
     color[:, :20] = 0
@@ -168,10 +176,10 @@ def test_extreme_values_stay_in_range(make: type) -> None:
         assert (out[:, :, : display.width // 3] == 0.0).all()  # black stays black
 
 
-@pytest.mark.parametrize("make", [EasuUpscaler, EasuRcasUpscaler, Lanczos2Upscaler])
+@pytest.mark.parametrize("make", [TorchEasu, TorchEasuRcas, Lanczos2Upscaler])
 @pytest.mark.parametrize("render", [Size(64, 36), Size(641, 359)])
 @pytest.mark.parametrize("scale", [1.0, 1.5, 1.7, 2.0, 3.0, 4.0])
-def test_output_has_display_size(make: type, render: Size, scale: float) -> None:
+def test_output_has_display_size(make: Callable[[], Upscaler], render: Size, scale: float) -> None:
     if render.width > 100 and scale > 2.0:
         render = Size(161, 89)  # keep the test fast; odd sizes all the same
     display = render.scaled(scale)
@@ -184,7 +192,7 @@ def test_easu_at_scale_one_is_nearly_the_input() -> None:
     yy, xx = np.mgrid[0:40, 0:64]
     smooth = 0.5 + 0.3 * np.sin(xx / 6.0)[..., None] * np.cos(yy / 5.0)[..., None] * [1, 0.8, 0.6]
     color = np.round(smooth * 255).astype(np.uint8)
-    out = EasuUpscaler().upscale(make_frame(color), Size(64, 40))
+    out = TorchEasu().upscale(make_frame(color), Size(64, 40))
     assert (out - chw(color)).abs().max() <= 2.5 / 255.0
 
 
@@ -192,7 +200,7 @@ def test_easu_at_scale_one_is_nearly_the_input() -> None:
 def test_easu_stays_inside_its_source_quad(display: Size) -> None:
     color = random_color(Size(48, 32), seed=4)
     img = chw(color)
-    out = EasuUpscaler().upscale(make_frame(color), display)
+    out = TorchEasu().upscale(make_frame(color), display)
     padded = F.pad(img.unsqueeze(0), (0, 1, 0, 1), mode="replicate")[0]
     lo = torch.minimum(torch.minimum(padded[:, :-1, :-1], padded[:, :-1, 1:]),
                        torch.minimum(padded[:, 1:, :-1], padded[:, 1:, 1:]))  # fmt: skip
@@ -211,7 +219,7 @@ def test_easu_stays_inside_its_source_quad(display: Size) -> None:
 def test_easu_edge_is_steeper_than_bilinear() -> None:
     color = np.full((16, 16, 3), 50, np.uint8)
     color[:, 8:] = 200
-    out = EasuUpscaler().upscale(make_frame(color), Size(32, 32))
+    out = TorchEasu().upscale(make_frame(color), Size(32, 32))
     bilinear = F.interpolate(chw(color)[None], size=(32, 32), mode="bilinear", align_corners=False)[
         0
     ]
@@ -222,10 +230,10 @@ def test_easu_edge_is_steeper_than_bilinear() -> None:
 
 def test_rcas_fewer_stops_sharpen_more_and_stay_in_range() -> None:
     color = random_color(Size(40, 24), seed=5)
-    base = EasuUpscaler().upscale(make_frame(color), Size(80, 48))
+    base = TorchEasu().upscale(make_frame(color), Size(80, 48))
     change = []
     for stops in (0.0, 0.2, 0.5, 1.0, 2.0, 4.0):
-        out = EasuRcasUpscaler(sharpness=stops).upscale(make_frame(color), Size(80, 48))
+        out = TorchEasuRcas(sharpness=stops).upscale(make_frame(color), Size(80, 48))
         assert out.min() >= 0.0 and out.max() <= 1.0
         change.append(float((out - base).abs().mean()))
     assert all(a > b for a, b in itertools.pairwise(change)), change
@@ -234,9 +242,9 @@ def test_rcas_fewer_stops_sharpen_more_and_stay_in_range() -> None:
 
 def test_rcas_denoise_sharpens_less() -> None:
     color = random_color(Size(40, 24), seed=6)
-    base = EasuUpscaler().upscale(make_frame(color), Size(80, 48))
-    plain = EasuRcasUpscaler().upscale(make_frame(color), Size(80, 48))
-    quiet = EasuRcasUpscaler(denoise=True).upscale(make_frame(color), Size(80, 48))
+    base = TorchEasu().upscale(make_frame(color), Size(80, 48))
+    plain = TorchEasuRcas().upscale(make_frame(color), Size(80, 48))
+    quiet = TorchEasuRcas(denoise=True).upscale(make_frame(color), Size(80, 48))
     assert (quiet - base).abs().mean() < (plain - base).abs().mean()
     assert quiet.min() >= 0.0 and quiet.max() <= 1.0
 
@@ -282,13 +290,13 @@ def assert_float16_close(half: torch.Tensor, ref: torch.Tensor) -> None:
 def test_float16_matches_float32_but_at_easus_discontinuities() -> None:
     frame = make_frame(random_color(Size(160, 90), seed=7))
     for display in (Size(320, 180), Size(272, 153)):
-        ref = EasuRcasUpscaler().upscale(frame, display)
+        ref = TorchEasuRcas().upscale(frame, display)
         half = EasuRcasUpscaler(dtype=torch.float16).upscale(frame, display)
         assert half.dtype == torch.float16
         assert_float16_close(half, ref)
         assert_float16_close(
             EasuUpscaler(dtype=torch.float16).upscale(frame, display),
-            EasuUpscaler().upscale(frame, display),
+            TorchEasu().upscale(frame, display),
         )
 
 
@@ -297,7 +305,7 @@ def test_easu_is_discontinuous_where_float16_differs() -> None:
     EASU by about as much as float16 does on the same image."""
     frame = make_frame(random_color(Size(160, 90), seed=7))
     display = Size(320, 180)
-    ref = EasuUpscaler().upscale(frame, display)
+    ref = TorchEasu().upscale(frame, display)
     half_gap = (EasuUpscaler(dtype=torch.float16).upscale(frame, display).float() - ref).abs()
     image = torch.from_numpy(random_color(Size(160, 90), seed=7)).permute(2, 0, 1).float() / 255
     nudged = image + 1e-4 * torch.randn(image.shape, generator=torch.Generator().manual_seed(1))
@@ -309,12 +317,12 @@ def test_easu_is_discontinuous_where_float16_differs() -> None:
 def test_cuda_float16_matches_cpu() -> None:
     frame = make_frame(random_color(Size(160, 90), seed=7))
     for display in (Size(320, 180), Size(272, 153)):
-        cpu = EasuRcasUpscaler().upscale(frame, display)
+        cpu = TorchEasuRcas().upscale(frame, display)
         gpu = EasuRcasUpscaler(device="cuda", dtype=torch.float16).upscale(frame, display)
         assert gpu.device.type == "cuda" and gpu.dtype == torch.float16
         assert_float16_close(gpu, cpu)
         easu_gpu = EasuUpscaler(device="cuda", dtype=torch.float16).upscale(frame, display)
-        assert_float16_close(easu_gpu, EasuUpscaler().upscale(frame, display))
+        assert_float16_close(easu_gpu, TorchEasu().upscale(frame, display))
         # float32 on CUDA is the CPU's result to rounding.
         gpu32 = EasuRcasUpscaler(device="cuda").upscale(frame, display).cpu()
         assert float((gpu32 - cpu).abs().max()) < 1e-4

@@ -230,14 +230,14 @@ def test_worker_thread_budget_covers_the_compiled_kernels() -> None:
 
     import numba
 
-    from server.worker import _limit_compiled_threads
+    from server.cpu_threads import limit_compiled_threads
 
     seen: list[int] = []
 
     def on_worker_thread() -> None:  # numba's limit is per thread, like a worker's loop
-        _limit_compiled_threads(1)
+        limit_compiled_threads(1)
         seen.append(numba.get_num_threads())
-        _limit_compiled_threads(10_000)
+        limit_compiled_threads(10_000)
         seen.append(numba.get_num_threads())
 
     t = threading.Thread(target=on_worker_thread)

@@ -13,6 +13,8 @@ through its own UpscalerHost (the worker's code path), so timings compare like
 with like and temporal methods see the frames in order. ``--compile`` adds
 ``METHOD+compiled`` next to each method with a torch.compile path, so eager and
 compiled are timed in the same run; their compile time shows as ``warmup_ms``.
+``--eager-torch`` likewise adds ``METHOD+torch``, the eager torch path of a method
+whose CPU default is a numba kernel.
 Quality is measured on the frames after a warm-up that lets temporal history
 build up; FLIP, which costs seconds
 per frame on a CPU, is computed on the last ``--flip-frames`` of them.
@@ -29,12 +31,15 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-import torch
 
 from server.bench.report import BenchReport, summarize_ms
+from server.cpu_threads import set_cpu_threads
 from server.eval.methods import (
+    COMPILED,
+    EAGER_TORCH,
     MethodSpec,
     compiled_variants,
+    eager_torch_variants,
     parse_method,
     sharpness_variants,
 )
@@ -82,6 +87,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="add METHOD+compiled (torch.compile path) for every method that has one",
     )
+    parser.add_argument(
+        "--eager-torch",
+        action="store_true",
+        help="add METHOD+torch (eager torch instead of the numba CPU kernel) for every "
+        "method that has a numba kernel",
+    )
 
 
 @dataclass
@@ -102,8 +113,11 @@ def _parse(args: argparse.Namespace) -> tuple[list[str], list[float], list[Metho
     labels = _csv(args.methods)
     try:
         labels += sharpness_variants([float(s) for s in _csv(args.rcas_sharpness)])
+        plain = list(labels)
         if args.compile:
-            labels += compiled_variants(labels)
+            labels += compiled_variants(plain)
+        if args.eager_torch:
+            labels += eager_torch_variants(plain)
         methods = [parse_method(m) for m in dict.fromkeys(labels)]
     except ValueError as e:
         raise SystemExit(str(e)) from None
@@ -195,7 +209,7 @@ def _mean(values: list[float]) -> float | None:
 
 def run(args: argparse.Namespace) -> int:
     scenes, scales, methods, display = _parse(args)
-    torch.set_num_threads(args.threads)
+    set_cpu_threads(args.threads)
     report = BenchReport(
         "eval_upscalers",
         {
@@ -293,10 +307,18 @@ def add_ratios(report: BenchReport) -> None:
         base = med.get((scale, "bilinear"))
         if base and method != "bilinear":
             report.add_ratio(f"{scale:g}x {method} / bilinear time", method, "bilinear", ms / base)
-        eager = method.removesuffix("+compiled")
+        eager = method.removesuffix(COMPILED)
         if eager != method and (scale, eager) in med:
             report.add_ratio(
                 f"{scale:g}x {eager} speed-up compiled", eager, method, med[(scale, eager)] / ms
+            )
+        default = method.removesuffix(EAGER_TORCH)
+        if default != method and (scale, default) in med:
+            report.add_ratio(
+                f"{scale:g}x {default} speed-up over eager torch",
+                default,
+                method,
+                ms / med[(scale, default)],
             )
 
 
@@ -377,7 +399,9 @@ TIME_TARGETS_MS = {"easu_rcas": 15.0, "temporal": 20.0}
 def _time_checks(cases: list[dict[str, Any]]) -> list[tuple[str, bool]]:
     checks = []
     for method in dict.fromkeys(c["method"] for c in cases):
-        target = TIME_TARGETS_MS.get(method.removesuffix("+compiled"))
+        if method.endswith(EAGER_TORCH):  # a comparison, not what the pipeline runs
+            continue
+        target = TIME_TARGETS_MS.get(method.removesuffix(COMPILED))
         mine = [
             c["median_ms"]
             for c in cases
