@@ -87,10 +87,11 @@ class Fsr1Cpu:
                 self._easu,
             )
         out = np.empty((ho, wo, 3), np.uint8)
+        rows = out.reshape(ho, wo * 3)  # a view: see kernels._row_to_rgb8
         if rcas_scale is None:
-            kernels.interior_to_rgb8(self._easu, out)
+            kernels.interior_to_rgb8(self._easu, rows)
         else:
-            kernels.rcas_to_rgb8(self._easu, np.float32(rcas_scale), out)
+            kernels.rcas_to_rgb8(self._easu, np.float32(rcas_scale), rows)
         _log_first_call(time.monotonic() - t0)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)

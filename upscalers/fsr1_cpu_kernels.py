@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import llvmlite.binding as llvm
 import numpy as np
-from numba import njit, prange
+from numba import literally, njit, prange
 
 # LLVM vectorizes a loop that writes one array while reading others only after
 # run-time checks that they do not overlap, and gives up above 8 such checks; the
@@ -96,107 +96,152 @@ def _lerp(a, b, t):
 
 
 @njit(inline="always", **_JIT)
-def _blend(fields, k, fr, fr1, im, i0, px, py):
-    """Bilinear blend of field ``k`` over the quad 'f g j k' (field index = padded - 1)."""
-    top = _lerp(fields[k, fr, im], fields[k, fr, i0], px)
-    return _lerp(top, _lerp(fields[k, fr1, im], fields[k, fr1, i0], px), py)
-
-
-@njit(inline="always", **_JIT)
-def _tap(padded, ry, cx, d2s, clip, s):
-    """Add the tap at padded (ry, cx) with stretched squared distance ``d2s - 2.5`` to
-    the sums ``s`` (R, G, B, weight). The weight drops EASU's constant factors, which
-    cancel in the normalization (see fsr1_easu)."""
+def _weight(d2s, clip):
+    """Unnormalized EASU weight of a tap at stretched squared distance ``d2s - 2.5``;
+    EASU's constant factors cancel in the normalization (see fsr1_easu)."""
     e = min(d2s - clip, F32(0.0))
-    wt = (d2s * d2s - F32(2.25)) * e * e
-    return (
-        s[0] + padded[0, ry, cx] * wt,
-        s[1] + padded[1, ry, cx] * wt,
-        s[2] + padded[2, ry, cx] * wt,
-        s[3] + wt,
-    )
-
-
-@njit(inline="always", **_JIT)
-def _deringed(padded, ch, rb, rc, i0, i1, v):
-    """``v`` clamped to the channel's min / max over the quad 'f g j k' (de-ringing)."""
-    q00, q01 = padded[ch, rb, i0], padded[ch, rb, i1]
-    q10, q11 = padded[ch, rc, i0], padded[ch, rc, i1]
-    return min(max(v, min(min(q00, q01), min(q10, q11))), max(max(q00, q01), max(q10, q11)))
-
-
-@njit(inline="always", **_JIT)
-def _easu_pixel(padded, fields, r, i0, py, px):
-    """EASU (R, G, B) of the output pixel whose texel 'f' is at padded (r, i0), phase
-    (px, py). Straight code, no branches: it vectorizes over a row."""
-    ra, rb, rc, rd = r - U(1), r, r + U(1), r + U(2)
-    im, i1, i2 = i0 - U(1), i0 + U(1), i0 + U(2)
-    gdx = _blend(fields, 0, ra, rb, im, i0, px, py)
-    gdy = _blend(fields, 1, ra, rb, im, i0, px, py)
-    length = _blend(fields, 2, ra, rb, im, i0, px, py)
-    # Direction normalized; FSR's "no direction" sets x to 1 and keeps y (tiny).
-    r2 = gdx * gdx + gdy * gdy
-    keep = r2 >= DIR_ZERO
-    inv = F32(1.0) / np.sqrt(max(r2, DIR_ZERO)) if keep else F32(1.0)
-    dx = gdx * inv if keep else F32(1.0)
-    dy = gdy * inv
-    ln = length * F32(0.5)
-    ln = ln * ln
-    dx2, dy2 = dx * dx, dy * dy
-    stretch = (dx2 + dy2) / max(abs(dx), abs(dy))
-    lx2 = (stretch - F32(1.0)) * ln + F32(1.0)
-    lx2 = lx2 * lx2
-    ly2 = ln * F32(-0.5) + F32(1.0)
-    ly2 = ly2 * ly2
-    clip = F32(1.0) / (ln * F32(0.25 - 0.04 - 0.5) + F32(0.5)) - F32(2.5)
-    # The rotated, stretched squared distance a vx^2 + b vx vy + c vy^2 of each tap.
-    a = dx2 * lx2 + dy2 * ly2
-    c = dy2 * lx2 + dx2 * ly2
-    b = dx * dy * (lx2 - ly2) * F32(2.0)
-    vxm, vx0, vx1, vx2 = F32(-1.0) - px, -px, F32(1.0) - px, F32(2.0) - px
-    axm, ax0, ax1, ax2 = a * vxm * vxm, a * vx0 * vx0, a * vx1 * vx1, a * vx2 * vx2
-    z = F32(0.0)
-    s = (z, z, z, z)
-    vy = F32(-1.0) - py  # row 'b c'
-    cr, br = c * vy * vy - F32(2.5), b * vy
-    s = _tap(padded, ra, i0, cr + ax0 + br * vx0, clip, s)
-    s = _tap(padded, ra, i1, cr + ax1 + br * vx1, clip, s)
-    vy = -py  # row 'e f g h'
-    cr, br = c * vy * vy - F32(2.5), b * vy
-    s = _tap(padded, rb, im, cr + axm + br * vxm, clip, s)
-    s = _tap(padded, rb, i0, cr + ax0 + br * vx0, clip, s)
-    s = _tap(padded, rb, i1, cr + ax1 + br * vx1, clip, s)
-    s = _tap(padded, rb, i2, cr + ax2 + br * vx2, clip, s)
-    vy = F32(1.0) - py  # row 'i j k l'
-    cr, br = c * vy * vy - F32(2.5), b * vy
-    s = _tap(padded, rc, im, cr + axm + br * vxm, clip, s)
-    s = _tap(padded, rc, i0, cr + ax0 + br * vx0, clip, s)
-    s = _tap(padded, rc, i1, cr + ax1 + br * vx1, clip, s)
-    s = _tap(padded, rc, i2, cr + ax2 + br * vx2, clip, s)
-    vy = F32(2.0) - py  # row 'n o'
-    cr, br = c * vy * vy - F32(2.5), b * vy
-    s = _tap(padded, rd, i0, cr + ax0 + br * vx0, clip, s)
-    s = _tap(padded, rd, i1, cr + ax1 + br * vx1, clip, s)
-    norm = F32(1.0) / max(s[3], TINY)
-    return (
-        _deringed(padded, 0, rb, rc, i0, i1, s[0] * norm),
-        _deringed(padded, 1, rb, rc, i0, i1, s[1] * norm),
-        _deringed(padded, 2, rb, rc, i0, i1, s[2] * norm),
-    )
+    return (d2s * d2s - F32(2.25)) * e * e
 
 
 @njit(**_JIT)
-def _easu_phase_row(padded, fields, r, py, px, col0, n, row):
-    """EASU of the output pixels j k + m (j < n) of one output row at an integer scale k:
-    their texel 'f' is at padded column ``col0 + j`` and their phase is ``px``, so the
-    taps are plain offsets from j. Writes (3, n) ``row``. A function of its own so
-    that nothing of the loop lives on after it (numba would keep it, LLVM then
-    refuses to vectorize)."""
+def _easu_row(padded, fields, r, py, col0, px0, cols, phases, n, row, affine):
+    """EASU of ``n`` pixels of one output row into (3, n) ``row``; 'f' is on padded row
+    ``r`` with phase ``py``. With ``affine`` (a literal) pixel j has 'f' on padded
+    column ``col0 + j`` and phase ``px0`` (one phase of an integer scale: every tap
+    is a fixed offset from j and the loop vectorizes), else on ``cols[j]`` with
+    phase ``phases[j]`` (any scale: the taps are gathers, which LLVM leaves scalar).
+
+    What keeps the loop vectorizable (each measured 47-51 ms against 8 ms at
+    1280x720 when broken): the body is written out flat, since a helper that takes
+    arrays, inlined or not, and a tuple of running sums both kept it scalar; and
+    ``affine`` is a compile-time literal, since LLVM did not split the loop on a
+    run-time flag."""
+    literally(affine)  # compiled once per value, the other branch pruned away
+    ra, rb, rc, rd = r - U(1), r, r + U(1), r + U(2)  # padded rows of the taps
+    vya, vyb, vyc, vyd = F32(-1.0) - py, -py, F32(1.0) - py, F32(2.0) - py
     for j in range(n):
-        rgb = _easu_pixel(padded, fields, r, col0 + U(j), py, px)
-        row[0, U(j)] = rgb[0]
-        row[1, U(j)] = rgb[1]
-        row[2, U(j)] = rgb[2]
+        i0 = col0 + U(j) if affine else U(cols[j])
+        px = px0 if affine else phases[j]
+        im, i1, i2 = i0 - U(1), i0 + U(1), i0 + U(2)
+        # Bilinear blend of the texels' fields at 'f g j k' (field row/col = padded - 1).
+        gdx = _lerp(
+            _lerp(fields[0, ra, im], fields[0, ra, i0], px),
+            _lerp(fields[0, rb, im], fields[0, rb, i0], px),
+            py,
+        )
+        gdy = _lerp(
+            _lerp(fields[1, ra, im], fields[1, ra, i0], px),
+            _lerp(fields[1, rb, im], fields[1, rb, i0], px),
+            py,
+        )
+        length = _lerp(
+            _lerp(fields[2, ra, im], fields[2, ra, i0], px),
+            _lerp(fields[2, rb, im], fields[2, rb, i0], px),
+            py,
+        )
+        # Direction normalized; FSR's "no direction" sets x to 1 and keeps y (tiny).
+        r2 = gdx * gdx + gdy * gdy
+        keep = r2 >= DIR_ZERO
+        inv = F32(1.0) / np.sqrt(max(r2, DIR_ZERO)) if keep else F32(1.0)
+        dx = gdx * inv if keep else F32(1.0)
+        dy = gdy * inv
+        ln = length * F32(0.5)
+        ln = ln * ln
+        dx2, dy2 = dx * dx, dy * dy
+        stretch = (dx2 + dy2) / max(abs(dx), abs(dy))
+        lx2 = (stretch - F32(1.0)) * ln + F32(1.0)
+        lx2 = lx2 * lx2
+        ly2 = ln * F32(-0.5) + F32(1.0)
+        ly2 = ly2 * ly2
+        clip = F32(1.0) / (ln * F32(0.25 - 0.04 - 0.5) + F32(0.5)) - F32(2.5)
+        # Each tap's rotated, stretched squared distance a vx^2 + b vx vy + c vy^2.
+        a = dx2 * lx2 + dy2 * ly2
+        c = dy2 * lx2 + dx2 * ly2
+        b = dx * dy * (lx2 - ly2) * F32(2.0)
+        vxm, vx0, vx1, vx2 = F32(-1.0) - px, -px, F32(1.0) - px, F32(2.0) - px
+        axm, ax0, ax1, ax2 = a * vxm * vxm, a * vx0 * vx0, a * vx1 * vx1, a * vx2 * vx2
+        s0 = s1 = s2 = sw = F32(0.0)
+        cr, br = c * vya * vya - F32(2.5), b * vya  # row 'b c'
+        w = _weight(cr + ax0 + br * vx0, clip)
+        s0 += padded[0, ra, i0] * w
+        s1 += padded[1, ra, i0] * w
+        s2 += padded[2, ra, i0] * w
+        sw += w
+        w = _weight(cr + ax1 + br * vx1, clip)
+        s0 += padded[0, ra, i1] * w
+        s1 += padded[1, ra, i1] * w
+        s2 += padded[2, ra, i1] * w
+        sw += w
+        cr, br = c * vyb * vyb - F32(2.5), b * vyb  # row 'e f g h'
+        w = _weight(cr + axm + br * vxm, clip)
+        s0 += padded[0, rb, im] * w
+        s1 += padded[1, rb, im] * w
+        s2 += padded[2, rb, im] * w
+        sw += w
+        w = _weight(cr + ax0 + br * vx0, clip)
+        s0 += padded[0, rb, i0] * w
+        s1 += padded[1, rb, i0] * w
+        s2 += padded[2, rb, i0] * w
+        sw += w
+        w = _weight(cr + ax1 + br * vx1, clip)
+        s0 += padded[0, rb, i1] * w
+        s1 += padded[1, rb, i1] * w
+        s2 += padded[2, rb, i1] * w
+        sw += w
+        w = _weight(cr + ax2 + br * vx2, clip)
+        s0 += padded[0, rb, i2] * w
+        s1 += padded[1, rb, i2] * w
+        s2 += padded[2, rb, i2] * w
+        sw += w
+        cr, br = c * vyc * vyc - F32(2.5), b * vyc  # row 'i j k l'
+        w = _weight(cr + axm + br * vxm, clip)
+        s0 += padded[0, rc, im] * w
+        s1 += padded[1, rc, im] * w
+        s2 += padded[2, rc, im] * w
+        sw += w
+        w = _weight(cr + ax0 + br * vx0, clip)
+        s0 += padded[0, rc, i0] * w
+        s1 += padded[1, rc, i0] * w
+        s2 += padded[2, rc, i0] * w
+        sw += w
+        w = _weight(cr + ax1 + br * vx1, clip)
+        s0 += padded[0, rc, i1] * w
+        s1 += padded[1, rc, i1] * w
+        s2 += padded[2, rc, i1] * w
+        sw += w
+        w = _weight(cr + ax2 + br * vx2, clip)
+        s0 += padded[0, rc, i2] * w
+        s1 += padded[1, rc, i2] * w
+        s2 += padded[2, rc, i2] * w
+        sw += w
+        cr, br = c * vyd * vyd - F32(2.5), b * vyd  # row 'n o'
+        w = _weight(cr + ax0 + br * vx0, clip)
+        s0 += padded[0, rd, i0] * w
+        s1 += padded[1, rd, i0] * w
+        s2 += padded[2, rd, i0] * w
+        sw += w
+        w = _weight(cr + ax1 + br * vx1, clip)
+        s0 += padded[0, rd, i1] * w
+        s1 += padded[1, rd, i1] * w
+        s2 += padded[2, rd, i1] * w
+        sw += w
+        norm = F32(1.0) / max(sw, TINY)
+        # De-ringing: clamped to each channel's min / max over the quad 'f g j k'.
+        q00, q01 = padded[0, rb, i0], padded[0, rb, i1]
+        q10, q11 = padded[0, rc, i0], padded[0, rc, i1]
+        lo = min(min(q00, q01), min(q10, q11))
+        hi = max(max(q00, q01), max(q10, q11))
+        row[0, U(j)] = min(max(s0 * norm, lo), hi)
+        q00, q01 = padded[1, rb, i0], padded[1, rb, i1]
+        q10, q11 = padded[1, rc, i0], padded[1, rc, i1]
+        lo = min(min(q00, q01), min(q10, q11))
+        hi = max(max(q00, q01), max(q10, q11))
+        row[1, U(j)] = min(max(s1 * norm, lo), hi)
+        q00, q01 = padded[2, rb, i0], padded[2, rb, i1]
+        q10, q11 = padded[2, rc, i0], padded[2, rc, i1]
+        lo = min(min(q00, q01), min(q10, q11))
+        hi = max(max(q00, q01), max(q10, q11))
+        row[2, U(j)] = min(max(s2 * norm, lo), hi)
 
 
 @njit(**_JIT)
@@ -216,13 +261,16 @@ def easu_integer(padded, fields, row_f, phase_y, col0, phase_x0, out):
     ho = row_f.shape[0]
     k = col0.shape[0]
     n = (out.shape[2] - 2) // k
+    no_cols = np.empty(0, np.int64)
+    no_phases = np.empty(0, np.float32)
     n_blocks = (ho + ROW_BLOCK - 1) // ROW_BLOCK
     for blk in prange(n_blocks):
         row = np.empty((3, n), np.float32)
         for y in range(blk * ROW_BLOCK, min(ho, (blk + 1) * ROW_BLOCK)):
             for m in range(k):
-                _easu_phase_row(
-                    padded, fields, U(row_f[y]), phase_y[y], phase_x0[m], U(col0[m]), n, row
+                r, py = U(row_f[y]), phase_y[y]
+                _easu_row(
+                    padded, fields, r, py, U(col0[m]), phase_x0[m], no_cols, no_phases, n, row, True
                 )
                 _interleave_phase(row, out, U(y + 1), k, m, n)
 
@@ -230,17 +278,16 @@ def easu_integer(padded, fields, row_f, phase_y, col0, phase_x0, out):
 @njit(parallel=True, **_JIT)
 def easu_generic(padded, fields, row_f, col_f, phase_y, phase_x, out):
     """EASU at any scale into the interior of ``out`` (3, H_out + 2, W_out + 2): 'f' and
-    the phase per output row and column. The taps are gathers here, which LLVM does
-    not vectorize; ``easu_integer`` is the fast path."""
+    the phase per output row and column. ``easu_integer`` is the fast path."""
     ho, wo = row_f.shape[0], col_f.shape[0]
     n_blocks = (ho + ROW_BLOCK - 1) // ROW_BLOCK
     for blk in prange(n_blocks):
+        row = np.empty((3, wo), np.float32)
         for y in range(blk * ROW_BLOCK, min(ho, (blk + 1) * ROW_BLOCK)):
-            r = U(row_f[y])
-            for x in range(wo):
-                rgb = _easu_pixel(padded, fields, r, U(col_f[x]), phase_y[y], phase_x[x])
-                for ch in range(3):
-                    out[ch, y + 1, x + 1] = rgb[ch]
+            r, py = U(row_f[y]), phase_y[y]
+            _easu_row(padded, fields, r, py, U(0), F32(0.0), col_f, phase_x, wo, row, False)
+            for ch in range(3):
+                out[ch, y + 1, 1 : wo + 1] = row[ch]
 
 
 @njit(**_JIT)
@@ -296,21 +343,25 @@ def _rcas_row(image, y, scale, gain, row):
 
 @njit(**_JIT)
 def _row_to_rgb8(row, out, y):
-    """(3, W) float row in [0, 1] (clamped here) into ``out[y]`` (W, 3) uint8; the three
-    stores of a pixel in one loop body vectorize as one interleaved store."""
+    """(3, W) float row in [0, 1] (clamped here) into row ``y`` of ``out``, (H, W, 3)
+    uint8 seen as (H, 3 W): with a pixel's stride a constant 3 (a third axis's stride
+    is a run-time value LLVM must assume may be 1) the three stores of a pixel
+    vectorize as one interleaved store."""
     for x in range(row.shape[1]):
         i = U(x)
-        out[y, i, U(0)] = _to_u8(row[U(0), i])
-        out[y, i, U(1)] = _to_u8(row[U(1), i])
-        out[y, i, U(2)] = _to_u8(row[U(2), i])
+        o = U(3) * i
+        out[y, o] = _to_u8(row[U(0), i])
+        out[y, o + U(1)] = _to_u8(row[U(1), i])
+        out[y, o + U(2)] = _to_u8(row[U(2), i])
 
 
 @njit(parallel=True, **_JIT)
 def rcas_to_rgb8(image, scale, out):
     """RCAS (lobe scaled by ``scale``) of the interior of a (3, H + 2, W + 2) image whose
-    border this fills with the edge, quantized into ``out`` (H, W, 3) uint8."""
+    border this fills with the edge, quantized into ``out`` (H, W, 3) uint8 given as
+    (H, 3 W)."""
     _fill_border(image)
-    h, w = out.shape[0], out.shape[1]
+    h, w = out.shape[0], out.shape[1] // 3
     n_blocks = (h + ROW_BLOCK - 1) // ROW_BLOCK
     for blk in prange(n_blocks):
         row = np.empty((3, w), np.float32)
@@ -322,7 +373,8 @@ def rcas_to_rgb8(image, scale, out):
 
 @njit(parallel=True, **_JIT)
 def interior_to_rgb8(image, out):
-    """The interior of a (3, H + 2, W + 2) image in [0, 1] into ``out`` (H, W, 3) uint8."""
+    """The interior of a (3, H + 2, W + 2) image in [0, 1] into ``out`` (H, W, 3) uint8
+    given as (H, 3 W)."""
     h = out.shape[0]
     for y in prange(h):
         _row_to_rgb8(image[:, y + 1, 1:-1], out, U(y))
