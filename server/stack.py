@@ -59,7 +59,7 @@ class SessionConfig(BaseModel):
     seed: int = Field(default=0, description="scene seed")
     game_threads: int = Field(default=1, ge=1, description="torch threads in the game")
     worker_threads: int = Field(
-        default=1, ge=1, description="CPU threads in the worker (torch and numba's MPE kernels)"
+        default=1, ge=1, description="CPU threads in the worker (torch and numba's kernels)"
     )
     slots: int = Field(default=3, ge=2, le=16, description="slots per ring")
     name: str = Field(
