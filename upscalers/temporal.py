@@ -44,12 +44,17 @@ kernel parallelizes over the batch only).
 
 NaN and Inf never enter the history: inputs are sanitized and the fetched
 history is cleaned before use (a planted NaN is dropped, not spread).
+
+On the CPU with float32 history the same steps run as compiled loops
+(``temporal_cpu.py``, numba): eager torch pays a pass over memory per operation,
+which the loops fuse into three passes at render size and one at display size.
+The torch code below stays the reference and the CUDA path.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import TYPE_CHECKING, ClassVar
 
 import torch
 import torch.nn.functional as F
@@ -57,6 +62,11 @@ import torch.nn.functional as F
 from server.frame import FrameFlags, RenderFrame, Size
 from upscalers import temporal_ops as ops
 from upscalers.base import Upscaler
+
+if TYPE_CHECKING:
+    from upscalers.temporal_cpu import HostTemporal
+
+_BACKENDS = ("auto", "torch", "numba")
 
 
 @dataclass(frozen=True)
@@ -113,12 +123,25 @@ class TemporalUpscaler(Upscaler):
         *,
         device: str | torch.device | None = None,
         dtype: torch.dtype = torch.float32,
+        backend: str = "auto",
     ) -> None:
+        """``backend``: "numba" runs the compiled CPU loops (CPU and float32 history only),
+        "torch" the tensor code, "auto" the loops wherever they can run."""
         self.params = params or TemporalParams()
 
         if device is None:
             device = "cuda" if torch.cuda.is_available() else "cpu"
         self.device = torch.device(device)
+        if backend not in _BACKENDS:
+            raise ValueError(
+                f"unknown temporal backend {backend!r}; allowed: {', '.join(_BACKENDS)}"
+            )
+        if backend == "numba" and not _numba_can_run(self.device, dtype):
+            raise ValueError(
+                "temporal backend 'numba' runs on the CPU with float32 history, "
+                f"got device {self.device} and dtype {dtype}; use backend 'torch' or 'auto'"
+            )
+        self.backend = backend
         # ``dtype`` is how the history is stored (float16 halves its memory traffic on a
         # GPU); the arithmetic is float32 whatever it is. float16 positions are off by up
         # to 0.6 px at 1280 px (10 bits of mantissa), and a history fetched there and
@@ -138,12 +161,16 @@ class TemporalUpscaler(Upscaler):
         # Display-size scratch kept between frames (a fresh large buffer costs page faults).
         self._grid_buffer: torch.Tensor | None = None
         self._neighbour_bufs: tuple[torch.Tensor, torch.Tensor] | None = None
+        # The numba path's state and buffers for the current geometry (None: torch path).
+        self._host: HostTemporal | None = None
 
     def reset(self) -> None:
         self._history = None
         self._weight = None
         self._prev_far = None
         self._prev_jitter = (0.0, 0.0)
+        if self._host is not None:
+            self._host.reset()
 
     def upscale(self, frame: RenderFrame, display_size: Size) -> torch.Tensor:
         p = self.params
@@ -159,10 +186,13 @@ class TemporalUpscaler(Upscaler):
             self._base_grid = None
             self._grid_buffer = None
             self._neighbour_bufs = None
+            self._host = self._host_for(render, display, dev)
         if frame.meta.flags & FrameFlags.RESET:
             self.reset()
         big_w, big_h = display
         jit = ops.jitter(frame)
+        if self._host is not None:
+            return self._upscale_host(self._host, frame, jit)
 
         # ---- render size: colour, box, dilated motion, trust, accumulated weight ----
         ycocg, lo, hi, prev_weight, mv = self._render_stage(frame, jit, ops.near_far(frame))
@@ -202,6 +232,33 @@ class TemporalUpscaler(Upscaler):
             history = new.reshape(1, 3, big_h, big_w).to(self.storage_dtype)
         self._history = history
         return ops.ycocg_to_rgb8(history[0])
+
+    def _host_for(self, render: Size, display: Size, dev: torch.device) -> HostTemporal | None:
+        """The numba path's state for a new geometry, or None where the torch path runs."""
+        if self.backend == "torch":
+            return None
+        if not _numba_can_run(dev, self.storage_dtype):
+            if self.backend == "numba":
+                raise ValueError(f"temporal backend 'numba' runs on the CPU, got a frame on {dev}")
+            return None
+        # Imported here: numba takes a while to import, and only this path needs it.
+        from upscalers import temporal_cpu
+
+        if self.backend == "auto" and not temporal_cpu.supports(render, display):
+            return None
+        scale = _integer_scale(render, display) or 1
+        return temporal_cpu.HostTemporal(self.params, render, display, scale)
+
+    def _upscale_host(
+        self, host: HostTemporal, frame: RenderFrame, jit: tuple[float, float]
+    ) -> torch.Tensor:
+        out = host.upscale(frame, jit, ops.near_far(frame))
+        # Views of the host's state: inspectable (and writable) as the torch path's.
+        history, weight = host.history, host.weight
+        assert history is not None and weight is not None
+        self._history = torch.from_numpy(history).unsqueeze(0)
+        self._weight = torch.from_numpy(weight)
+        return out
 
     def _render_stage(
         self, frame: RenderFrame, jit: tuple[float, float], nf: tuple[float, float] | None
@@ -404,6 +461,10 @@ class TemporalUpscaler(Upscaler):
             weight=torch.outer(gy, gx).view(1, 1, 1, big_h, big_w),
             motion=up[7:9].permute(1, 2, 3, 4, 0),
         )
+
+
+def _numba_can_run(device: torch.device, dtype: torch.dtype) -> bool:
+    return device.type == "cpu" and dtype == torch.float32
 
 
 def _integer_scale(render: Size, display: Size) -> int | None:
