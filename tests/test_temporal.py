@@ -62,11 +62,12 @@ def unit(image: torch.Tensor) -> torch.Tensor:
 
 
 def run(up: TemporalUpscaler, frames: list[RenderFrame], display: Size) -> torch.Tensor:
-    """The last frame's result, as float in [0, 1]."""
+    """The last frame's result, as float in [0, 1] on the CPU (the upscaler runs on CUDA
+    where there is one)."""
     out = torch.empty(0)
     for f in frames:
         out = up.upscale(f, display)
-    return unit(out)
+    return unit(out.cpu())
 
 
 def test_registered_interface() -> None:
