@@ -68,9 +68,12 @@ def test_time_checks_use_the_720p_medians() -> None:
         for s, ms in (("a", 14.0), ("b", 16.0), ("c", 15.0))
     ]
     slow = [{**c, "method": "temporal", "median_ms": 21.0} for c in cases]
-    results = dict(must_show_checks(cases + slow))  # type: ignore[arg-type]
+    variants = [{**c, "method": "easu_rcas+torch", "median_ms": 80.0} for c in cases]
+    results = dict(must_show_checks(cases + slow + variants))  # type: ignore[arg-type]
     assert results["640x360 -> 1280x720: easu_rcas median 15.0 ms <= 15 ms"]
     assert not results["640x360 -> 1280x720: temporal median 21.0 ms <= 20 ms"]
+    # The targets hold the pipeline's default path; variants are only compared.
+    assert not any("+torch" in text for text in results)
 
 
 def test_must_show_checks_evaluate_the_statements() -> None:

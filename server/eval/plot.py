@@ -8,7 +8,8 @@ from typing import Any
 
 
 def speed_error_plot(cases: list[dict[str, Any]], path: Path, title: str) -> None:
-    """Median ms (x, log) against mean PSNR over scenes (y); lines join a method's scales."""
+    """Median ms (x, log) against mean PSNR over scenes (y); lines join a method's scales;
+    dashed: ``+torch`` variants, dotted: ``+compiled``."""
     import matplotlib
 
     matplotlib.use("Agg")  # no display on servers
@@ -20,14 +21,21 @@ def speed_error_plot(cases: list[dict[str, Any]], path: Path, title: str) -> Non
     for c in cases:
         points[c["method"]][c["scale"]].append((c["median_ms"], c["psnr_db"]))
     fig, ax = plt.subplots(figsize=(8, 5.5), dpi=110)
+    # A method's variants (+torch, +compiled) share its colour and differ in line style,
+    # so the legend reads as methods, not as a dozen unrelated colours.
+    colours: dict[str, str] = {}
+    palette = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for method, by_scale in points.items():
+        base, _, variant = method.partition("+")
+        colour = colours.setdefault(base, palette[len(colours) % len(palette)])
+        style = {"": "-", "torch": "--", "compiled": ":"}.get(variant, "-.")
         xs, ys, labels = [], [], []
         for scale in sorted(by_scale):
             pts = by_scale[scale]
             xs.append(sum(p[0] for p in pts) / len(pts))
             ys.append(sum(p[1] for p in pts) / len(pts))
             labels.append(f"{scale:g}x")
-        ax.plot(xs, ys, marker="o", label=method)
+        ax.plot(xs, ys, marker="o", label=method, color=colour, linestyle=style)
         for x, y, label in zip(xs, ys, labels, strict=True):
             ax.annotate(label, (x, y), textcoords="offset points", xytext=(4, 4), fontsize=8)
     ax.set_xscale("log")
