@@ -12,6 +12,9 @@ COPY server/ server/
 COPY upscalers/ upscalers/
 # PyAV's wheel bundles FFmpeg with libx264: no system codec packages needed.
 RUN pip install .
+# Compile the numba CPU kernels into their cache now (as root: site-packages is
+# read-only for the upcast user), not on the first frame of a stream.
+RUN python -m upscalers.warm_kernels
 COPY deploy/healthcheck.py /usr/local/bin/upcast-healthcheck
 RUN chmod 0755 /usr/local/bin/upcast-healthcheck && useradd --system --uid 10001 upcast
 USER upcast

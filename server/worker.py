@@ -66,7 +66,8 @@ class WorkerConfig(BaseModel):
     compile: bool = Field(
         default=False,
         description="torch.compile the upscalers that have a compiled path (first frame "
-        "of a size waits for the compile; inductor's disk cache makes later starts fast)",
+        "of a size waits for the compile; inductor's disk cache makes later starts fast); "
+        "on the CPU the default numba kernels are faster, so this is for CUDA",
     )
 
 

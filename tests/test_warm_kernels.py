@@ -1,0 +1,21 @@
+"""``python -m upscalers.warm_kernels``: every CPU kernel a stream needs is compiled (or
+loaded from numba's cache) before the first frame, for ring views and plain arrays."""
+
+from __future__ import annotations
+
+import pytest
+
+from upscalers import fsr1_cpu_kernels, temporal_cpu_kernels
+from upscalers.warm_kernels import main
+
+
+def test_warm_up_compiles_the_kernels_a_worker_calls(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main([]) == 0
+    assert "CPU kernels ready" in capsys.readouterr().err
+    # Both integer-scale and other-scale EASU, for read-only ring views and writable arrays.
+    assert fsr1_cpu_kernels.easu_integer.signatures
+    assert fsr1_cpu_kernels.easu_generic.signatures
+    colour_types = {sig[0] for sig in fsr1_cpu_kernels.pad_and_fields.signatures}
+    assert {t.mutable for t in colour_types} == {True, False}
+    for name in ("display_blocked", "display_generic"):
+        assert getattr(temporal_cpu_kernels, name).signatures, name
