@@ -3,10 +3,10 @@
 numba compiles a kernel on its first call and keeps the machine code in its
 on-disk cache (``__pycache__`` beside the source, or numba's user cache where
 that is read-only). A cold compile of the FSR 1, temporal and MPE kernels takes
-about a minute on a 2-core machine; a worker that met it on its first frame
-would freeze the stream that long. ``./dev`` runs this after installing, the
-session image at build time; afterwards a worker loads the kernels in under a
-second.
+about two minutes on a 2-core machine (108 s measured); a worker that met it on
+its first frame would freeze the stream that long. ``./dev`` runs this after
+installing, the session image at build time; afterwards a worker loads the
+kernels in under a second.
 
 Kernels are compiled per argument type, not per size: tiny frames of each kind
 the pipeline passes (read-only ring views and writable arrays; integer and other
@@ -71,7 +71,9 @@ def main(argv: list[str] | None = None) -> int:
         description="Compile the numba CPU kernels (FSR 1, temporal, MPE) into numba's cache.",
     )
     parser.parse_args(argv)
-    print("compiling the CPU kernels (numba; about a minute the first time) ...", file=sys.stderr)
+    print(
+        "compiling the CPU kernels (numba; about two minutes the first time) ...", file=sys.stderr
+    )
     took = warm_up()
     print(f"CPU kernels ready in {took:.1f} s", file=sys.stderr)
     return 0
