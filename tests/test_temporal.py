@@ -128,20 +128,26 @@ def test_history_adds_detail_then_follows_changes() -> None:
     assert float((out - 30 / 255).abs().max()) < 0.02
 
 
+def poisoned(frame: RenderFrame, rng: np.random.Generator, bad_jitter: bool) -> RenderFrame:
+    """``frame`` with NaN in a tenth of its depth and motion, +-Inf and huge motion in
+    places, and (``bad_jitter``) a NaN jitter."""
+    depth, motion = frame.depth.copy(), frame.motion.copy()
+    depth[rng.random(depth.shape) < 0.1] = np.nan
+    depth[0, :5] = np.inf
+    motion[rng.random(motion.shape) < 0.1] = np.nan
+    motion[3, :4] = [np.inf, -np.inf]
+    motion[5, 5] = [1e30, -1e30]
+    frame = replace(frame, depth=depth, motion=motion)
+    if bad_jitter:
+        frame = replace(frame, meta=replace(frame.meta, jitter=(float("nan"), 0.1)))
+    return frame
+
+
 def test_non_finite_inputs_and_history_never_reach_output() -> None:
     up = TemporalUpscaler()
     rng = np.random.default_rng(0)
     for i in range(6):
-        f = pattern_frame(RENDER, i, motion=0.4)
-        depth, motion = f.depth.copy(), f.motion.copy()
-        depth[rng.random(depth.shape) < 0.1] = np.nan
-        depth[0, :5] = np.inf
-        motion[rng.random(motion.shape) < 0.1] = np.nan
-        motion[3, :4] = [np.inf, -np.inf]
-        motion[5, 5] = [1e30, -1e30]
-        f = replace(f, depth=depth, motion=motion)
-        if i == 3:
-            f = replace(f, meta=replace(f.meta, jitter=(float("nan"), 0.1)))
+        f = poisoned(pattern_frame(RENDER, i, motion=0.4), rng, bad_jitter=i == 3)
         out = unit(up.upscale(f, DISPLAY))
         assert torch.isfinite(out).all()
         # Plant NaN and Inf into the history itself.
@@ -151,7 +157,7 @@ def test_non_finite_inputs_and_history_never_reach_output() -> None:
         up._weight.view(-1)[::5] = float("nan")
     out = unit(up.upscale(pattern_frame(RENDER, 9, motion=0.4), DISPLAY))
     assert torch.isfinite(out).all() and float(out.min()) >= 0 and float(out.max()) <= 1
-    assert torch.isfinite(up._history).all()
+    assert up._history is not None and torch.isfinite(up._history).all()
 
 
 def test_motion_far_off_screen_rejects_history() -> None:

@@ -21,7 +21,7 @@ import torch
 from server.eval.upscalers import _render_frames
 from server.frame import FrameFlags, RenderFrame, Size
 from server.render.transforms import jitter_phase_count
-from tests.test_temporal import DISPLAY, RENDER, pattern_frame
+from tests.test_temporal import DISPLAY, RENDER, pattern_frame, poisoned
 from upscalers.temporal import TemporalUpscaler
 
 MAX_U8_DIFF = 1
@@ -129,17 +129,8 @@ def test_backends_agree_on_non_finite_inputs_and_history() -> None:
     ref, fast = _backends()
     rng = np.random.default_rng(0)
     for i in range(6):
-        f = pattern_frame(RENDER, i, motion=0.0 if i == 4 else 0.4)
-        depth, motion = f.depth.copy(), f.motion.copy()
-        depth[rng.random(depth.shape) < 0.1] = np.nan
-        depth[0, :5] = np.inf
-        depth[1, :5] = -np.inf
-        motion[rng.random(motion.shape) < 0.1] = np.nan
-        motion[3, :4] = [np.inf, -np.inf]
-        motion[5, 5] = [1e30, -1e30]
-        f = replace(f, depth=depth, motion=motion)
-        if i == 3:
-            f = replace(f, meta=replace(f.meta, jitter=(float("nan"), 0.1)))
+        f = poisoned(pattern_frame(RENDER, i, motion=0.0 if i == 4 else 0.4), rng, i == 3)
+        f.depth[1, :5] = -np.inf  # a fresh copy: poisoned copies the planes it changes
         a, b = ref.upscale(f, DISPLAY), fast.upscale(f, DISPLAY)
         _assert_agree(ref, fast, a, b)
         for up in (ref, fast):
