@@ -3,11 +3,21 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from typing import ClassVar
+from typing import ClassVar, Literal
 
 import torch
 
 from server.frame import RenderFrame, Size
+
+# Where a method has both, "numba" runs its compiled CPU kernels and "torch" its tensor
+# code (the reference, and the CUDA path); "auto" picks the kernels wherever they run.
+Backend = Literal["auto", "torch", "numba"]
+BACKENDS: tuple[Backend, ...] = ("auto", "torch", "numba")
+
+
+def numba_can_run(device: torch.device, dtype: torch.dtype) -> bool:
+    """Whether the numba kernels serve this configuration: the CPU, in float32."""
+    return device.type == "cpu" and dtype == torch.float32
 
 
 class Upscaler(ABC):

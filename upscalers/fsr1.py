@@ -14,12 +14,12 @@ within float rounding; see ``compiled.py``).
 
 from __future__ import annotations
 
-from typing import ClassVar, Literal
+from typing import ClassVar
 
 import torch
 
 from server.frame import RenderFrame, Size
-from upscalers.base import Upscaler
+from upscalers.base import BACKENDS, Backend, Upscaler, numba_can_run
 from upscalers.compiled import CompiledFunction
 from upscalers.fsr1_cpu import Fsr1Cpu, usable_input
 from upscalers.fsr1_easu import PAD, Easu, axis_map, replicate_pad_into
@@ -32,10 +32,6 @@ def frame_color(frame: RenderFrame, device: torch.device) -> torch.Tensor:
     """The (3, H, W) uint8 colour plane of a frame on ``device`` (a view on the CPU)."""
     color = color_as_nchw(frame.color)[0]
     return color if device.type == "cpu" else color.to(device, non_blocking=False)
-
-
-Backend = Literal["auto", "torch", "numba"]
-BACKENDS: tuple[Backend, ...] = ("auto", "torch", "numba")
 
 
 class _Fsr1Base(Upscaler):
@@ -52,7 +48,7 @@ class _Fsr1Base(Upscaler):
         self.dtype = dtype
         if backend not in BACKENDS:
             raise ValueError(f"backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
-        numba_ok = self.device.type == "cpu" and dtype == torch.float32 and not compile
+        numba_ok = numba_can_run(self.device, dtype) and not compile
         if backend == "numba" and not numba_ok:
             raise ValueError(
                 "backend='numba' runs on the CPU in float32 without compile=True, got "

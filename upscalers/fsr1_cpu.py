@@ -47,8 +47,12 @@ class Fsr1Cpu:
         self._key = (h, w, ho, wo)
         self._row_f, self._phase_y = _axis(h, ho)
         self._col_f, self._phase_x = _axis(w, wo)
-        # An integer horizontal scale k repeats k phases along a row: the fast kernel.
-        self._k = wo // w if wo % w == 0 else 0
+        # An integer horizontal scale k repeats k phases along a row (the fast kernel):
+        # columns 0 .. k - 1 stand for all.
+        k = wo // w if wo % w == 0 else 0
+        self._integer = k > 0
+        self._col0 = self._col_f[:k].copy()
+        self._phase_x0 = self._phase_x[:k].copy()
         self._padded = np.empty((3, h + 2 * PAD, w + 2 * PAD), np.float32)
         self._luma = np.empty((h + 2 * PAD, w + 2 * PAD), np.float32)
         self._fields = np.empty((3, h + 2, w + 2), np.float32)
@@ -65,15 +69,14 @@ class Fsr1Cpu:
         self._setup(h, w, ho, wo)
         t0 = time.monotonic()
         kernels.pad_and_fields(color, self._padded, self._luma, self._fields)
-        if self._k:
-            k = self._k
+        if self._integer:
             kernels.easu_integer(
                 self._padded,
                 self._fields,
                 self._row_f,
                 self._phase_y,
-                self._col_f[:k].copy(),
-                self._phase_x[:k].copy(),
+                self._col0,
+                self._phase_x0,
                 self._easu,
             )
         else:

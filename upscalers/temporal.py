@@ -61,12 +61,10 @@ import torch.nn.functional as F
 
 from server.frame import FrameFlags, RenderFrame, Size
 from upscalers import temporal_ops as ops
-from upscalers.base import Upscaler
+from upscalers.base import BACKENDS, Backend, Upscaler, numba_can_run
 
 if TYPE_CHECKING:
     from upscalers.temporal_cpu import HostTemporal
-
-_BACKENDS = ("auto", "torch", "numba")
 
 
 @dataclass(frozen=True)
@@ -123,7 +121,7 @@ class TemporalUpscaler(Upscaler):
         *,
         device: str | torch.device | None = None,
         dtype: torch.dtype = torch.float32,
-        backend: str = "auto",
+        backend: Backend = "auto",
     ) -> None:
         """``backend``: "numba" runs the compiled CPU loops (CPU and float32 history only),
         "torch" the tensor code, "auto" the loops wherever they can run."""
@@ -132,16 +130,16 @@ class TemporalUpscaler(Upscaler):
         if device is None:
             device = "cuda" if torch.cuda.is_available() else "cpu"
         self.device = torch.device(device)
-        if backend not in _BACKENDS:
+        if backend not in BACKENDS:
             raise ValueError(
-                f"unknown temporal backend {backend!r}; allowed: {', '.join(_BACKENDS)}"
+                f"unknown temporal backend {backend!r}; allowed: {', '.join(BACKENDS)}"
             )
-        if backend == "numba" and not _numba_can_run(self.device, dtype):
+        if backend == "numba" and not numba_can_run(self.device, dtype):
             raise ValueError(
                 "temporal backend 'numba' runs on the CPU with float32 history, "
                 f"got device {self.device} and dtype {dtype}; use backend 'torch' or 'auto'"
             )
-        self.backend = backend
+        self.backend: Backend = backend
         # ``dtype`` is how the history is stored (float16 halves its memory traffic on a
         # GPU); the arithmetic is float32 whatever it is. float16 positions are off by up
         # to 0.6 px at 1280 px (10 bits of mantissa), and a history fetched there and
@@ -237,7 +235,7 @@ class TemporalUpscaler(Upscaler):
         """The numba path's state for a new geometry, or None where the torch path runs."""
         if self.backend == "torch":
             return None
-        if not _numba_can_run(dev, self.storage_dtype):
+        if not numba_can_run(dev, self.storage_dtype):
             if self.backend == "numba":
                 raise ValueError(f"temporal backend 'numba' runs on the CPU, got a frame on {dev}")
             return None
@@ -461,10 +459,6 @@ class TemporalUpscaler(Upscaler):
             weight=torch.outer(gy, gx).view(1, 1, 1, big_h, big_w),
             motion=up[7:9].permute(1, 2, 3, 4, 0),
         )
-
-
-def _numba_can_run(device: torch.device, dtype: torch.dtype) -> bool:
-    return device.type == "cpu" and dtype == torch.float32
 
 
 def _integer_scale(render: Size, display: Size) -> int | None:
