@@ -14,7 +14,7 @@ def test_warm_up_compiles_the_kernels_a_worker_calls(capsys: pytest.CaptureFixtu
     assert "CPU kernels ready" in capsys.readouterr().err
     # Both integer-scale and other-scale EASU, for read-only ring views and writable arrays.
     assert fsr1_cpu_kernels.easu_integer.signatures
-    assert fsr1_cpu_kernels.easu_generic.signatures
+    assert fsr1_cpu_kernels.easu_gathered.signatures
     colour_types = {sig[0] for sig in fsr1_cpu_kernels.pad_and_fields.signatures}
     assert {t.mutable for t in colour_types} == {True, False}
     for name in ("display_blocked", "display_generic"):

@@ -80,7 +80,7 @@ class Fsr1Cpu:
                 self._easu,
             )
         else:
-            kernels.easu_generic(
+            kernels.easu_gathered(
                 self._padded,
                 self._fields,
                 self._row_f,

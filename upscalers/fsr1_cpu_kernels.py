@@ -6,14 +6,15 @@ one pass per stage over the pixels: eager torch runs EASU as ~200 elementwise
 passes over display-size temporaries, which on a 2-core CPU costs about five
 times the arithmetic itself. Here every output pixel is computed from its 12
 taps in registers, and the inner loops over a row are simple enough for LLVM
-to vectorize (AVX2 / AVX-512 gathers for the taps).
+to vectorize.
 
 Stages (``fsr1_cpu.py`` is the typed boundary that calls them):
 
 1. ``pad_and_fields``: the (H, W, 3) uint8 input as a planar, edge-padded float
    image in [0, 1] and the per-texel direction / length fields (computed once at
    input resolution; EASU blends them bilinearly per output pixel).
-2. ``easu_rows``: EASU of every output pixel, into a planar float image.
+2. ``easu_integer`` / ``easu_gathered``: EASU of every output pixel, into a planar
+   float image.
 3. ``rcas_to_rgb8`` / ``planar_to_rgb8``: RCAS (or nothing) and the quantization
    to the (H, W, 3) uint8 layout of ring U, in one pass.
 
@@ -104,25 +105,31 @@ def _weight(d2s, clip):
 
 
 @njit(**_JIT)
-def _easu_row(padded, fields, r, py, col0, px0, cols, phases, n, row, affine):
+def _easu_row(padded, fields, r, py, col0, step, px0, phases, n, row, one_phase):
     """EASU of ``n`` pixels of one output row into (3, n) ``row``; 'f' is on padded row
-    ``r`` with phase ``py``. With ``affine`` (a literal) pixel j has 'f' on padded
-    column ``col0 + j`` and phase ``px0`` (one phase of an integer scale: every tap
-    is a fixed offset from j and the loop vectorizes), else on ``cols[j]`` with
-    phase ``phases[j]`` (any scale: the taps are gathers, which LLVM leaves scalar).
+    ``r`` with phase ``py``. Pixel j has 'f' on padded column ``col0 + j`` and its
+    horizontal neighbours ``step`` columns apart, so every tap is a fixed offset from
+    j and the loop vectorizes. Its horizontal phase is ``px0`` with ``one_phase`` (a
+    literal: one phase of an integer scale) or else ``phases[j]``.
+
+    Two layouts feed it: the padded image itself (``step`` 1, one phase of an
+    integer scale, where pixel j k + m has 'f' at ``col0[m] + j``), and, for any
+    other scale, copies of the rows whose columns were gathered per output pixel
+    (``step`` = the output width; see ``easu_gathered``).
 
     What keeps the loop vectorizable (each measured 47-51 ms against 8 ms at
     1280x720 when broken): the body is written out flat, since a helper that takes
     arrays, inlined or not, and a tuple of running sums both kept it scalar; and
-    ``affine`` is a compile-time literal, since LLVM did not split the loop on a
-    run-time flag."""
-    literally(affine)  # compiled once per value, the other branch pruned away
+    ``one_phase`` is a compile-time literal, since LLVM did not split the loop on a
+    run-time flag. Taps at run-time column indices (gathers) kept it scalar too
+    (26 ms), hence the gathered copies."""
+    literally(one_phase)  # compiled once per value, the other branch pruned away
     ra, rb, rc, rd = r - U(1), r, r + U(1), r + U(2)  # padded rows of the taps
     vya, vyb, vyc, vyd = F32(-1.0) - py, -py, F32(1.0) - py, F32(2.0) - py
     for j in range(n):
-        i0 = col0 + U(j) if affine else U(cols[j])
-        px = px0 if affine else phases[j]
-        im, i1, i2 = i0 - U(1), i0 + U(1), i0 + U(2)
+        i0 = col0 + U(j)
+        px = px0 if one_phase else phases[U(j)]
+        im, i1, i2 = i0 - step, i0 + step, i0 + step + step
         # Bilinear blend of the texels' fields at 'f g j k' (field row/col = padded - 1).
         gdx = _lerp(
             _lerp(fields[0, ra, im], fields[0, ra, i0], px),
@@ -261,7 +268,6 @@ def easu_integer(padded, fields, row_f, phase_y, col0, phase_x0, out):
     ho = row_f.shape[0]
     k = col0.shape[0]
     n = (out.shape[2] - 2) // k
-    no_cols = np.empty(0, np.int64)
     no_phases = np.empty(0, np.float32)
     n_blocks = (ho + ROW_BLOCK - 1) // ROW_BLOCK
     for blk in prange(n_blocks):
@@ -270,22 +276,60 @@ def easu_integer(padded, fields, row_f, phase_y, col0, phase_x0, out):
             for m in range(k):
                 r, py = U(row_f[y]), phase_y[y]
                 _easu_row(
-                    padded, fields, r, py, U(col0[m]), phase_x0[m], no_cols, no_phases, n, row, True
+                    padded, fields, r, py, U(col0[m]), U(1), phase_x0[m], no_phases, n, row, True
                 )
                 _interleave_phase(row, out, U(y + 1), k, m, n)
 
 
+# Output rows per work item of ``easu_gathered``: more rows share each gathered input
+# row (4 + rows / scale input rows per item), fewer keep the copies in L2 (about
+# 100 KB per input row at 1280 output columns).
+GATHER_ROW_BLOCK = 16
+
+
 @njit(parallel=True, **_JIT)
-def easu_generic(padded, fields, row_f, col_f, phase_y, phase_x, out):
+def easu_gathered(padded, fields, row_f, col_f, phase_y, phase_x, out):
     """EASU at any scale into the interior of ``out`` (3, H_out + 2, W_out + 2): 'f' and
-    the phase per output row and column. ``easu_integer`` is the fast path."""
+    the phase per output row and column (``easu_integer`` is the faster path for an
+    integer horizontal scale).
+
+    Per block of output rows, the input rows it reads are first copied with their
+    columns gathered per output pixel: segment d of copied row i holds, at j, the
+    texel d - 1 columns right of pixel j's 'f'. EASU then reads every tap at a fixed
+    offset from j (segments ``W_out`` apart), as in the integer path, and
+    vectorizes; the copy is a plain gather loop, once per input row and block."""
     ho, wo = row_f.shape[0], col_f.shape[0]
-    n_blocks = (ho + ROW_BLOCK - 1) // ROW_BLOCK
+    n_blocks = (ho + GATHER_ROW_BLOCK - 1) // GATHER_ROW_BLOCK
+    step = U(wo)
     for blk in prange(n_blocks):
+        y0 = blk * GATHER_ROW_BLOCK
+        y1 = min(ho, y0 + GATHER_ROW_BLOCK)
+        first = row_f[y0] - 1  # padded row of copy row 0 (row_f does not decrease)
+        n_rows = row_f[y1 - 1] - first + 3  # taps reach rows 'f' - 1 .. 'f' + 2
+        colours = np.empty((3, n_rows, 4 * wo), np.float32)
+        # Field rows 'f' - 1 and 'f' hold the fields of texels 'f' and 'j' (see pass 1).
+        field_rows = np.empty((3, n_rows - 2, 2 * wo), np.float32)
+        for i in range(n_rows):
+            src = U(first + i)
+            for ch in range(3):
+                for d in range(4):
+                    base = U(d * wo)
+                    for j in range(wo):
+                        colours[U(ch), U(i), base + U(j)] = padded[U(ch), src, U(col_f[j] + d - 1)]
+            if i < n_rows - 2:
+                for f in range(3):
+                    for d in range(2):
+                        base = U(d * wo)
+                        for j in range(wo):
+                            field_rows[U(f), U(i), base + U(j)] = fields[
+                                U(f), src, U(col_f[j] + d - 1)
+                            ]
         row = np.empty((3, wo), np.float32)
-        for y in range(blk * ROW_BLOCK, min(ho, (blk + 1) * ROW_BLOCK)):
-            r, py = U(row_f[y]), phase_y[y]
-            _easu_row(padded, fields, r, py, U(0), F32(0.0), col_f, phase_x, wo, row, False)
+        for y in range(y0, y1):
+            r = U(row_f[y] - first)
+            _easu_row(
+                colours, field_rows, r, phase_y[y], step, step, F32(0.0), phase_x, wo, row, False
+            )
             for ch in range(3):
                 out[ch, y + 1, 1 : wo + 1] = row[ch]
 
