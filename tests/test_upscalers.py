@@ -103,6 +103,20 @@ def test_sanitize_replaces_non_finite_and_copies_only_then() -> None:
     assert np.isnan(bad.depth[0, 0]), "the slot's own bytes are left alone"
 
 
+@pytest.mark.parametrize("value", [np.nan, np.inf, -np.inf, 1e30, -1e30])
+@pytest.mark.parametrize("plane", ["depth", "motion"])
+def test_sanitize_finds_one_bad_value_alone(plane: str, value: float) -> None:
+    """The clean-frame check is a min and a max: one NaN, one Inf or one huge motion
+    anywhere must still be found (a NaN among finite values must not hide)."""
+    frame = make_frame(Size(17, 9))
+    array = frame.depth if plane == "depth" else frame.motion[..., 1]
+    array[8, 16] = value
+    fixed, report = sanitize_frame(frame)
+    huge_depth_is_valid = plane == "depth" and np.isfinite(value)
+    assert report.total == (0 if huge_depth_is_valid else 1)
+    assert np.isfinite(fixed.depth).all() and np.abs(fixed.motion).max() <= 4 * 17
+
+
 class _SpyUpscaler(Upscaler):
     name = "spy"
     temporal = True
