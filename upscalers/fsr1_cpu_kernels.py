@@ -15,7 +15,7 @@ Stages (``fsr1_cpu.py`` is the typed boundary that calls them):
    input resolution; EASU blends them bilinearly per output pixel).
 2. ``easu_integer`` / ``easu_gathered``: EASU of every output pixel, into a planar
    float image.
-3. ``rcas_to_rgb8`` / ``planar_to_rgb8``: RCAS (or nothing) and the quantization
+3. ``rcas_to_rgb8`` / ``interior_to_rgb8``: RCAS (or nothing) and the quantization
    to the (H, W, 3) uint8 layout of ring U, in one pass.
 
 Outputs go into caller-owned arrays; nothing allocates per frame.
@@ -307,7 +307,8 @@ def easu_gathered(padded, fields, row_f, col_f, phase_y, phase_x, out):
         first = row_f[y0] - 1  # padded row of copy row 0 (row_f does not decrease)
         n_rows = row_f[y1 - 1] - first + 3  # taps reach rows 'f' - 1 .. 'f' + 2
         colours = np.empty((3, n_rows, 4 * wo), np.float32)
-        # Field rows 'f' - 1 and 'f' hold the fields of texels 'f' and 'j' (see pass 1).
+        # Field rows 'f' - 1 and 'f' hold texel rows 'f g' and 'j k' (a texel's field row is
+        # its padded row - 1, see pad_and_fields).
         field_rows = np.empty((3, n_rows - 2, 2 * wo), np.float32)
         for i in range(n_rows):
             src = U(first + i)
