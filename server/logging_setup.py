@@ -20,6 +20,8 @@ import os
 from collections.abc import Mapping
 from typing import Any
 
+from server.redact import redact_text
+
 LOG_FORMATS = ("text", "json")
 ENV_VAR = "UPCAST_LOG_FORMAT"
 TEXT_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
@@ -43,12 +45,48 @@ class JsonLineFormatter(logging.Formatter):
         extra = {k: v for k, v in record.__dict__.items() if k not in _STANDARD}
         if extra:
             entry["extra"] = extra
-        if record.exc_info:
+        if record.exc_text:  # RedactingFilter's masked copy, when it ran
+            entry["exc"] = record.exc_text
+        elif record.exc_info:
             entry["exc"] = self.formatException(record.exc_info)
         elif record.stack_info:
             entry["stack"] = record.stack_info
         # default=repr: an odd extra value must never cost the log line.
         return json.dumps(entry, default=repr, ensure_ascii=False)
+
+
+class RedactingFilter(logging.Filter):
+    """Masks tokens and passwords in every record a handler writes: the last line of
+    defence for a secret that a log call formats by mistake (callers still redact
+    URLs themselves). The message is formatted once, masked and stored back with no
+    args; a traceback is formatted into ``exc_text`` and masked too, which both
+    formatters then print instead of formatting ``exc_info`` again."""
+
+    _exc_formatter = logging.Formatter()
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        try:
+            message = record.getMessage()
+        except Exception:  # a bad %-format: leave it for the handler to report
+            return True
+        masked = redact_text(message)
+        if masked != message:
+            record.msg, record.args = masked, None
+        if record.exc_info and not record.exc_text:
+            record.exc_text = self._exc_formatter.formatException(record.exc_info)
+        if record.exc_text:
+            record.exc_text = redact_text(record.exc_text)
+        if record.stack_info:
+            record.stack_info = redact_text(record.stack_info)
+        return True
+
+
+def install_redaction(logger: logging.Logger | None = None) -> None:
+    """Put a RedactingFilter on every handler of ``logger`` (the root by default)
+    that lacks one; for processes that set up logging with ``basicConfig``."""
+    for handler in (logger or logging.getLogger()).handlers:
+        if not any(isinstance(f, RedactingFilter) for f in handler.filters):
+            handler.addFilter(RedactingFilter())
 
 
 def default_log_format(environ: Mapping[str, str] = os.environ) -> str:
@@ -68,5 +106,6 @@ def configure_logging(level: int, log_format: str) -> None:
     handler = logging.StreamHandler()
     formatter = JsonLineFormatter() if log_format == "json" else logging.Formatter(TEXT_FORMAT)
     handler.setFormatter(formatter)
+    handler.addFilter(RedactingFilter())
     logging.basicConfig(level=level, handlers=[handler])
     os.environ[ENV_VAR] = log_format

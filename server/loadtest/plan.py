@@ -14,6 +14,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from urllib.parse import urlsplit
 
+from server.redact import redact_url
+
 MAX_VIEWERS = 1000
 MAX_DURATION_S = 3600.0
 MAX_PROCESSES = 64
@@ -37,9 +39,9 @@ def parse_relay_url(url: str) -> RelayAddress:
         parts = urlsplit(url)
         port = parts.port
     except ValueError as exc:
-        raise ValueError(f"--relay {url!r}: {exc}") from None
+        raise ValueError(f"--relay {redact_url(url)!r}: {exc}") from None
     if parts.scheme not in ("http", "https") or not parts.hostname:
-        raise ValueError(f"--relay must look like http://localhost:4443/, got {url!r}")
+        raise ValueError(f"--relay must look like http://localhost:4443/, got {redact_url(url)!r}")
     return RelayAddress(parts.scheme, parts.hostname, port or 443)
 
 

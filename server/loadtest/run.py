@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from typing import TextIO
 
 from server.quic.http_fetch import fetch_cert_hash
+from server.redact import redact_url
 
 from .plan import LoadConfig, RelayAddress, RunPlan, make_plan, parse_relay_url
 from .progress import ProgressBoard
@@ -69,7 +70,7 @@ async def _cert_hash(relay: RelayAddress, config: LoadConfig) -> str | None:
         )
     except (ConnectionError, OSError, TimeoutError) as exc:
         raise LoadTestError(
-            f"relay {config.relay_url} unreachable: {exc or type(exc).__name__}"
+            f"relay {redact_url(config.relay_url)} unreachable: {exc or type(exc).__name__}"
         ) from None
 
 

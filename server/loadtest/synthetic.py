@@ -39,9 +39,11 @@ from server.cmaf import media_fragment, parse_fragment
 from server.encode import EncodedFrame, EncoderConfig, VideoEncoder
 from server.event_loop import install_uvloop
 from server.frame import Camera, FrameMeta, Size
+from server.logging_setup import install_redaction
 from server.moq.events import Event
 from server.moq_link import MoqLink, connect_moq
 from server.quic.client import WtConnectError
+from server.redact import redact_url
 from server.session.broadcast import GameBroadcast
 from server.timing import Stage, stamp
 
@@ -69,7 +71,7 @@ class SyntheticSettings:
 
     def problem(self) -> str | None:
         if not self.relay_url.startswith(("http://", "https://")):
-            return f"--relay must be an http(s):// URL, got {self.relay_url!r}"
+            return f"--relay must be an http(s):// URL, got {redact_url(self.relay_url)!r}"
         if self.size.width % 2 or self.size.height % 2 or min(self.size) < 16:
             return f"--size must be even and at least 16x16, got {self.size}"
         if not 0 < self.fps <= 240:
@@ -338,6 +340,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"synthetic publisher: {exc}", file=sys.stderr)
         return 2
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    install_redaction()
     install_uvloop()
     return asyncio.run(_main(settings, args.duration))
 

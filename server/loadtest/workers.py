@@ -23,6 +23,7 @@ from multiprocessing.process import BaseProcess
 from typing import Any
 
 from server.event_loop import install_uvloop
+from server.logging_setup import install_redaction
 
 from .plan import RunPlan
 from .viewer import Snapshot, ViewerConfig, WorkerResult, run_viewers
@@ -37,6 +38,7 @@ def _worker_main(
     worker: int, config: ViewerConfig, indices: list[int], conn: Connection, queue: Any
 ) -> None:
     logging.basicConfig(level=logging.WARNING)
+    install_redaction()
     logging.getLogger("quic").setLevel(logging.WARNING)
     install_uvloop()
     try:

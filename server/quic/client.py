@@ -24,6 +24,8 @@ from aioquic.quic.connection import QuicConnection
 from aioquic.quic.events import ConnectionTerminated, QuicEvent
 from cryptography.hazmat.primitives import serialization
 
+from server.redact import redact_url
+
 from . import codes, sf
 from .certs import der_sha256_hex
 from .connection import IDLE_TIMEOUT_S, WtConnection, decode_headers
@@ -35,7 +37,10 @@ DEFAULT_PROTOCOLS = ("moq-lite-03",)
 
 
 class WtConnectError(ConnectionError):
-    """The WebTransport session could not be established (reason in the message)."""
+    """The WebTransport session could not be established (reason in the message).
+
+    The message names the URL with its ``?jwt=`` token masked (server.redact): it
+    is logged by every caller that retries."""
 
 
 class CertificateHashError(WtConnectError):
@@ -85,7 +90,7 @@ class WtClientConnection(WtConnection):
 def _split_url(url: str) -> tuple[str, str, int, str]:
     parts = urlsplit(url)
     if parts.scheme not in ("https", "http") or not parts.hostname:
-        raise ValueError(f"not an http(s) URL: {url!r}")
+        raise ValueError(f"not an http(s) URL: {redact_url(url)!r}")
     port = parts.port or 443
     path = parts.path or "/"
     if parts.query:
@@ -131,6 +136,7 @@ async def connect(
     @moq/watch does. Returns the session and the server's `wt-protocol`.
     """
     scheme, host, port, path = _split_url(url)
+    shown = redact_url(url)  # the URL as error messages name it: its token masked
     if scheme == "http" and cert_hash_hex is None:
         cert_hash_hex = await fetch_cert_hash(host, port, timeout=timeout)
     authority = f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
@@ -188,7 +194,7 @@ async def connect(
         if protocol is not None:
             protocol.abort()
         raise WtConnectError(
-            f"WebTransport connect to {url} timed out after {timeout:g}s during {stage}"
+            f"WebTransport connect to {shown} timed out after {timeout:g}s during {stage}"
         ) from None
     except BaseException:
         if protocol is not None:
@@ -200,7 +206,8 @@ async def connect(
     if status != "200" or (chosen is not None and protocols and chosen not in protocols):
         protocol.abort()
         raise WtConnectError(
-            f"WebTransport CONNECT to {url} refused: status {status or '?'}, wt-protocol {chosen!r}"
+            f"WebTransport CONNECT to {shown} refused: "
+            f"status {status or '?'}, wt-protocol {chosen!r}"
         )
     session.protocol = chosen
     request = WtRequest(

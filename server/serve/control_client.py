@@ -20,6 +20,7 @@ from server.moq.events import Event, FrameReceived, SubscribeClosed, SubscribeRe
 from server.moq.session import SessionClosedError
 from server.moq_link import MoqLink, connect_moq
 from server.quic.client import WtConnectError
+from server.redact import redact_url
 from server.session.session_control import STATUS_TRACK, SessionControl, StatusRecord
 
 log = logging.getLogger(__name__)
@@ -93,7 +94,7 @@ async def request_control(
             relay_url, on_events=on_events, cert_hash_hex=cert_hash_hex, timeout=timeout_s
         )
     except (WtConnectError, OSError, TimeoutError, ValueError) as exc:
-        raise ControlError(f"relay {relay_url} unreachable: {exc}") from None
+        raise ControlError(f"relay {redact_url(relay_url)} unreachable: {exc}") from None
     try:
         link.moq.publish(source)
         status_sub.append(link.moq.subscribe(broadcast, STATUS_TRACK))

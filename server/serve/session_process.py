@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from server.logging_setup import install_redaction
 from server.serve.session_body import LiveSession, SessionPlan, run_game_session
 from server.serve.spec import SessionSpec
 
@@ -94,6 +95,7 @@ def main(argv: list[str]) -> int:
         level=logging.INFO,
         format=f"%(asctime)s %(levelname)s [{spec.stream.broadcast}] %(name)s: %(message)s",
     )
+    install_redaction()
     logging.getLogger("quic").setLevel(logging.WARNING)
     from server.event_loop import install_uvloop
 

@@ -26,6 +26,7 @@ from server.monitor import FrameRateMonitor
 from server.moq.events import Event
 from server.moq_link import MoqLink, connect_moq
 from server.quic.client import WtConnectError
+from server.redact import redact_url
 from server.ring import FrameRing
 from server.session.broadcast import GameBroadcast
 from server.session.capture import CapturedFrame, CaptureThread
@@ -183,6 +184,7 @@ class StreamingSession:
     async def _relay_loop(self, stop: asyncio.Event) -> None:
         delay = RECONNECT_MIN_S
         url = self.settings.relay_url
+        shown = redact_url(url)  # a ?jwt= typed into --relay stays out of the log
         while not stop.is_set():
             try:
                 link = await connect_moq(
@@ -192,7 +194,7 @@ class StreamingSession:
                     token=self.settings.token,
                 )
             except (WtConnectError, OSError, TimeoutError) as exc:
-                log.warning("relay %s unreachable (%s); retrying in %.1f s", url, exc, delay)
+                log.warning("relay %s unreachable (%s); retrying in %.1f s", shown, exc, delay)
                 await asyncio.sleep(delay)
                 delay = min(RECONNECT_MAX_S, delay * 2)
                 continue
@@ -201,7 +203,7 @@ class StreamingSession:
             self.broadcast.attach(link.moq)
             link.pump()
             self.connected.set()
-            log.info("publishing broadcast %r on %s", self.settings.broadcast, url)
+            log.info("publishing broadcast %r on %s", self.settings.broadcast, shown)
             reason = await link.wait_closed()
             self.connected.clear()
             self.broadcast.detach()
