@@ -21,9 +21,15 @@ from server.moq.limits import MoqLimits, TokenBucket
 from server.moq.session import MoqSession
 from server.moq.transmit import CloseSession, ResetStream, SendData, StopSending
 from server.quic.client import connect
+from server.quic.refusals import RateLimitedLog
 from server.quic.session import WtRequest, WtSession
 
 log = logging.getLogger(__name__)
+# Protocol-error closes and over-rate peers, one process-wide limit: under attack
+# every hostile session ends this way, and one WARNING each filled the disk.
+warnings_log = RateLimitedLog(
+    logger=log, summary="%d more moq session warnings (log lines suppressed)"
+)
 
 EventSink = Callable[["MoqLink", list[Event]], None]
 # A pump that keeps producing events this many times in a row is a bug in an owner.
@@ -72,7 +78,9 @@ class MoqLink:
     def on_stream_data(self, stream_id: int, data: bytes, end_stream: bool) -> None:
         if self._ingress is not None and not self._ingress.take(len(data), time.monotonic()):
             if not self.moq.closed:
-                log.warning("moq session %s: receive rate over its limit; closing", self.remote)
+                warnings_log.warning(
+                    "moq session %s: receive rate over its limit; closing", self.remote
+                )
                 self.close(ErrorCode.LIMIT_EXCEEDED, "receive rate over limit")
             return
         self.moq.receive(stream_id, data, end_stream)
@@ -119,13 +127,11 @@ class MoqLink:
                     level = logging.INFO
                 elif t.error_code == ErrorCode.UNAUTHORIZED:
                     level = logging.DEBUG
-                log.log(
-                    level,
-                    "moq session %s closed: %s (code %d)",
-                    self.remote,
-                    t.reason,
-                    t.error_code,
-                )
+                line = ("moq session %s closed: %s (code %d)", self.remote, t.reason, t.error_code)
+                if level == logging.WARNING:
+                    warnings_log.warning(*line)
+                else:
+                    log.log(level, *line)
                 self.wt.close(t.error_code, t.reason)
 
     def close(self, code: int = 0, reason: str = "") -> None:
