@@ -165,6 +165,14 @@ class WtConnection(QuicConnectionProtocol):
         self._flush_handle = None
         self.transmit()
 
+    def transmit(self) -> None:
+        # Every network write passes here (timers and received datagrams included):
+        # resets held back while their stream was over the peer's MAX_STREAMS go out
+        # once aioquic has unblocked the stream (WtSession.reset_stream).
+        for session in self.sessions.values():
+            session.flush_deferred_resets()
+        super().transmit()
+
     def _keepalive(self) -> None:
         self._keepalive_handle = None
         if self._closed.is_set():

@@ -3,7 +3,8 @@
 WtSession is the object handed to a handler: it turns the sans-IO outputs
 (send, reset, stop sending, close) into aioquic calls and keeps the rules that
 aioquic leaves to the caller: no write after the peer stopped or reset a stream,
-error codes mapped into the HTTP/3 space, one network flush per loop iteration.
+no RESET_STREAM for a stream the peer has not yet let us open, error codes mapped
+into the HTTP/3 space, one network flush per loop iteration.
 """
 
 from __future__ import annotations
@@ -105,6 +106,9 @@ class WtSession:
     _closed_event: asyncio.Event = field(default_factory=asyncio.Event)
     # Capsules received on the CONNECT stream (bounded: only CLOSE is read).
     capsules: bytearray = field(default_factory=bytearray)
+    # Streams we reset while aioquic held them blocked (over the peer's MAX_STREAMS):
+    # their RESET_STREAM waits until the peer's credit covers them (reset_stream).
+    _deferred_resets: set[int] = field(default_factory=set)
 
     # --- sending (called by the protocol code) -------------------------------
 
@@ -119,6 +123,23 @@ class WtSession:
         self.conn.register_stream(stream_id, self)
         self.conn.schedule_transmit()
         return stream_id
+
+    def can_open_stream(self, is_unidirectional: bool) -> bool:
+        """Whether the peer's MAX_STREAMS lets us open one more stream of this kind now.
+
+        aioquic opens a stream past the peer's credit anyway and holds it "blocked"
+        until credit comes; the relay would rather skip a group than queue it there.
+        Read from aioquic's QuicConnection: the next local stream id (public) against
+        `_remote_max_streams_uni` / `_remote_max_streams_bidi` (private: re-check on an
+        aioquic upgrade).
+        """
+        if self.closed:
+            return False
+        quic = self.conn.quic
+        next_id = quic.get_next_available_stream_id(is_unidirectional)
+        if is_unidirectional:
+            return next_id // 4 < quic._remote_max_streams_uni
+        return next_id // 4 < quic._remote_max_streams_bidi
 
     def send(self, stream_id: int, data: bytes, end_stream: bool = False) -> None:
         """Queue bytes on a stream. Dropped silently once the stream can no longer
@@ -159,7 +180,33 @@ class WtSession:
         except ValueError:
             return  # peer's unidirectional stream or discarded: nothing to reset
         self._drop_send_buffer(stream_id)
+        stream = self.conn.quic._streams.get(stream_id)
+        if stream is not None and stream.is_blocked and stream.sender.reset_pending:
+            # aioquic writes RESET_STREAM even for a stream still over the peer's
+            # MAX_STREAMS, which the peer must treat as STREAM_LIMIT_ERROR and close
+            # the connection. Keep the stream reset in aioquic (no data will go) but
+            # hold the frame back until flush_deferred_resets sees it unblocked.
+            stream.sender.reset_pending = False
+            self._deferred_resets.add(stream_id)
         self.conn.schedule_transmit()
+
+    def flush_deferred_resets(self) -> None:
+        """Release the RESET_STREAM of held-back streams the peer's credit now covers.
+
+        Runs right before every network write (WtConnection.transmit): aioquic
+        unblocks streams while it reads a MAX_STREAMS frame, and this puts their
+        resets back in its queue before that same flush. Private fields, as above.
+        """
+        if not self._deferred_resets:
+            return
+        streams = self.conn.quic._streams
+        for stream_id in list(self._deferred_resets):
+            stream = streams.get(stream_id)
+            if stream is None:
+                self._deferred_resets.discard(stream_id)  # connection gone or state dropped
+            elif not stream.is_blocked:
+                stream.sender.reset_pending = True
+                self._deferred_resets.discard(stream_id)
 
     def stop_sending(self, stream_id: int, code: int) -> None:
         """Ask the peer to stop sending on a stream we receive from."""
