@@ -56,7 +56,12 @@ class MoqLink:
         is closed (LIMIT_EXCEEDED) before the bytes are parsed."""
         self.wt = wt
         self.request = request
-        self.moq = MoqSession(is_client=wt.is_client, open_stream=wt.open_stream, limits=limits)
+        self.moq = MoqSession(
+            is_client=wt.is_client,
+            open_stream=wt.open_stream,
+            can_open_stream=wt.can_open_stream,
+            limits=limits,
+        )
         self.on_events = on_events
         self.on_closed_callback = on_closed
         self.closed_reason: str | None = None

@@ -17,7 +17,8 @@ Choices (and why):
   smallest unit that can be skipped. The backlog counts the current group's stream plus the
   finished groups of that subscription not yet sent ("tails"): a viewer that never reads
   would otherwise take a whole finished group per group, each under the limit, without
-  bound. Nothing is buffered without bound.
+  bound. Nothing is buffered without bound. A viewer with no QUIC stream credit left
+  (MAX_STREAMS: it stopped reading) misses each group that starts meanwhile the same way.
 - Publisher leaves: its broadcasts are announced inactive and viewer subscriptions are
   ended (FIN). Viewers re-subscribe when the broadcast is announced again. We do not keep
   viewers attached across publishers: a new publisher restarts group sequences, and an
@@ -502,10 +503,15 @@ class RelayCore:
     def _open_out(
         self, track: _Track, viewer: _Viewer, upstream: int, group: _Group
     ) -> _Out | None:
-        session = self._conns[viewer.conn].session
-        stream_id = session.open_group(viewer.request_id, group.sequence)
+        conn = self._conns[viewer.conn]
+        stream_id = conn.session.open_group(viewer.request_id, group.sequence)
         self._touched.add(viewer.conn)
         if stream_id is None:
+            if not conn.session.closed and conn.session.request(viewer.request_id) is not None:
+                # The request is live, so the viewer's stream credit is used up (it stopped
+                # reading): it misses this group, as a skipped viewer does, and the next
+                # GroupOpened tries again from that group's start.
+                conn.stats.groups_skipped += 1
             return None
         out = _Out(stream_id)
         viewer.outs[upstream] = out

@@ -4,7 +4,8 @@ The transport adapter feeds stream bytes in (`receive`, `stream_reset`) and drai
 `take_transmit()` (bytes/resets to put on the wire) and `take_events()` (what happened).
 Commands (`publish`, `subscribe`, `open_group`, ...) only queue transmits; nothing here
 blocks or does I/O. Stream ids come from the adapter's `open_stream(is_unidirectional)`
-because HTTP/3 shares the QUIC id space with WebTransport.
+because HTTP/3 shares the QUIC id space with WebTransport; its optional
+`can_open_stream(is_unidirectional)` says whether the peer's stream credit allows one more.
 
 moq-lite is symmetric: whoever opens an announce-interest or subscribe stream is the
 subscriber, whoever answers it the publisher, independent of QUIC client/server.
@@ -87,9 +88,12 @@ class MoqSession:
         *,
         is_client: bool,
         open_stream: Callable[[bool], int],
+        can_open_stream: Callable[[bool], bool] | None = None,
         limits: MoqLimits | None = None,
         version: Version = Version.LITE_03,
     ) -> None:
+        """``can_open_stream`` (None: always) gates group streams only: a group is
+        worth dropping, a request stream is not (it waits in the transport instead)."""
         self.is_client = is_client
         self.limits = limits or MoqLimits()
         self.version = version
@@ -97,6 +101,7 @@ class MoqSession:
         self.bytes_received = 0
         self.bytes_sent = 0
         self._open_stream = open_stream
+        self._can_open_stream = can_open_stream
         self._transmit: list[Transmit] = []
         self._events: list[Event] = []
         self._streams: dict[int, StreamState] = {}
@@ -215,9 +220,14 @@ class MoqSession:
         return self._requests.get(request_id)
 
     def open_group(self, request_id: int, sequence: int) -> int | None:
-        """Open the uni stream of one group; None if the request (or session) is gone."""
+        """Open the uni stream of one group; None if the request (or session) is gone, or
+        if the peer's stream credit (QUIC MAX_STREAMS) is used up: then nothing is opened
+        and the caller drops the group (a stream queued past the credit would only
+        deliver it late, and resetting it there is a violation the peer closes on)."""
         request = self._requests.get(request_id)
         if self.closed or request is None or not request.accepted:
+            return None
+        if self._can_open_stream is not None and not self._can_open_stream(True):
             return None
         stream_id = self._open_stream(True)
         header = GroupHeader(request_id, sequence)
