@@ -35,6 +35,7 @@ from server.moq.relay_core import ConnId, ConnStats, RelayCore
 from server.moq_link import MoqLink
 from server.quic.certs import CertBundle
 from server.quic.endpoints import Endpoints, serve
+from server.quic.guard import REASONS, GuardLimits, GuardLog
 from server.quic.http_side import HttpRequest, Response
 from server.quic.refusals import RefusalLog
 from server.quic.session import Refusal, WtRequest, WtSession
@@ -59,6 +60,8 @@ class RelayConfig:
     max_connections: int = 1000
     limits: MoqLimits = field(default_factory=MoqLimits)
     ingress: IngressLimits = field(default_factory=IngressLimits)
+    # What a peer may send and open before it has a session (server/quic/guard.py).
+    guard: GuardLimits = field(default_factory=GuardLimits)
     # Library default: open (tests, benchmarks). `upcast relay` makes the choice
     # explicit: --auth-key or --no-auth.
     authorizer: Authorizer = field(default_factory=Authorizer.open_relay)
@@ -110,6 +113,17 @@ class RelayMetrics:
             ["broadcast", "track"],
             registry=registry,
         )
+        self.guard_refusals = Counter(
+            "upcast_relay_guard_refusals",
+            "QUIC connections closed or refused before (or around) their WebTransport"
+            " session: an HTTP/3 frame, header section or stream buffer over its limit,"
+            " too many overhead bytes, no CONNECT in time, too many or too fast connections,"
+            " a malformed CONNECT path",
+            ["reason"],
+            registry=registry,
+        )
+        for reason in REASONS:
+            self.guard_refusals.labels(reason)  # every reason shows, at 0, from the start
         self.handle = Histogram(
             "upcast_relay_handle_seconds",
             "Time to act on one burst of input (relay_in -> relay_out on the viewers' streams)",
@@ -127,6 +141,9 @@ class Relay:
         self.registry = CollectorRegistry()
         ProcessCollector(registry=self.registry)  # process_cpu_seconds_total for the load test
         self.metrics = RelayMetrics(self.registry)
+        self.guard_log = GuardLog(
+            on_refusal=lambda reason: self.metrics.guard_refusals.labels(reason).inc()
+        )
         self.core = RelayCore(
             self._buffered,
             max_backlog_bytes=config.max_backlog_bytes,
@@ -172,6 +189,8 @@ class Relay:
             web_root=self.config.web_root,
             routes=routes,
             authorize=self._authorize,
+            guard_limits=self.config.guard,
+            guard_log=self.guard_log,
         )
         self._tasks.append(asyncio.create_task(self._poll_loop(), name="relay-poll"))
         self._tasks.append(asyncio.create_task(self._stats_loop(), name="relay-stats"))

@@ -11,8 +11,10 @@ from pathlib import Path
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from server.moq.limits import IngressLimits
+from server.quic.guard import GuardLimits
 
 _DEFAULT_INGRESS = IngressLimits()
+_DEFAULT_GUARD = GuardLimits()
 
 
 class RelaySettings(BaseModel):
@@ -54,6 +56,22 @@ class RelaySettings(BaseModel):
         description="upload rate of a publishing session before it is closed (MiB/s)",
     )
 
+    max_connections_per_source: int = Field(
+        default=_DEFAULT_GUARD.max_connections_per_source,
+        ge=1,
+        description="QUIC connections open at once from one IP address",
+    )
+    new_connections_per_s: float = Field(
+        default=_DEFAULT_GUARD.new_connections_per_s_per_source,
+        gt=0,
+        description="new QUIC connections per second from one IP address (burst: twice that)",
+    )
+    connect_deadline_s: float = Field(
+        default=_DEFAULT_GUARD.connect_deadline_s,
+        gt=0,
+        description="seconds a QUIC connection has to get its WebTransport CONNECT accepted",
+    )
+
     @model_validator(mode="after")
     def _consistent(self) -> RelaySettings:
         if (self.cert is None) != (self.key is None):
@@ -72,6 +90,14 @@ class RelaySettings(BaseModel):
                 " (build it: cd client_web && npm ci && npm run build)"
             )
         return self
+
+    def guard(self) -> GuardLimits:
+        return GuardLimits(
+            max_connections_per_source=self.max_connections_per_source,
+            new_connections_per_s_per_source=self.new_connections_per_s,
+            new_connections_burst_per_source=2 * self.new_connections_per_s,
+            connect_deadline_s=self.connect_deadline_s,
+        )
 
     def ingress(self) -> IngressLimits:
         return IngressLimits(

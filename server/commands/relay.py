@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING
 
 from server.browser_paths import WEB_ROOT
 from server.moq.limits import IngressLimits
+from server.quic.guard import GuardLimits
 
 if TYPE_CHECKING:
     from server.auth import Authorizer
@@ -81,6 +82,27 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=int,
         default=IngressLimits().publisher_bytes_per_s // (1024 * 1024),
         help="bytes/s a publishing session may send before it is closed (MiB)",
+    )
+    guard = GuardLimits()
+    parser.add_argument(
+        "--max-connections-per-source",
+        type=int,
+        default=guard.max_connections_per_source,
+        help="QUIC connections open at once from one IP address (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--new-connections-per-s",
+        type=float,
+        default=guard.new_connections_per_s_per_source,
+        help="new QUIC connections per second from one IP address, burst twice that"
+        " (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--connect-deadline-s",
+        type=float,
+        default=guard.connect_deadline_s,
+        help="seconds a connection has to get its WebTransport CONNECT accepted"
+        " (default: %(default)s)",
     )
     parser.add_argument("--duration", type=float, default=None, help="stop after SECONDS")
     parser.add_argument("--ready-file", type=Path, default=None, help=argparse.SUPPRESS)
@@ -151,6 +173,7 @@ async def _serve(
         max_connections=settings.max_sessions,
         authorizer=auth,
         ingress=settings.ingress(),
+        guard=settings.guard(),
     )
     relay = Relay(config, cert)
     try:

@@ -11,9 +11,10 @@ import asyncio
 import logging
 from typing import Any
 
+import pylsqpack
 from aioquic._buffer import Buffer, BufferReadError
 from aioquic.asyncio.protocol import QuicConnectionProtocol
-from aioquic.h3.connection import H3_ALPN, FrameType, H3Connection, H3Stream
+from aioquic.h3.connection import H3_ALPN, FrameType, H3Connection, H3Stream, Setting
 from aioquic.h3.events import (
     DatagramReceived,
     DataReceived,
@@ -27,10 +28,12 @@ from aioquic.quic.events import (
     ProtocolNegotiated,
     QuicEvent,
     StopSendingReceived,
+    StreamDataReceived,
     StreamReset,
 )
 
 from . import codes
+from .guard import H3_EXCESSIVE_LOAD, ConnectionGuard, GuardLog, Violation
 from .session import Address, WtSession
 
 log = logging.getLogger(__name__)
@@ -38,6 +41,7 @@ log = logging.getLogger(__name__)
 H3_INTERNAL_ERROR = 0x102
 _PRUNE_AT = 4096
 _MAX_CAPSULES = 2048  # a CLOSE capsule is at most 4 + 1024 bytes of body
+SETTINGS_MAX_FIELD_SECTION_SIZE = 0x6
 
 
 class _WtH3Connection(H3Connection):
@@ -48,9 +52,19 @@ class _WtH3Connection(H3Connection):
     (it runs from H3Connection.__init__, so the flag is set before super()).
     """
 
-    def __init__(self, quic: QuicConnection, wt_max_sessions: int) -> None:
+    def __init__(
+        self, quic: QuicConnection, wt_max_sessions: int, max_field_section: int | None = None
+    ) -> None:
         self._wt_max_sessions = wt_max_sessions
+        self._max_field_section = max_field_section
         super().__init__(quic, enable_webtransport=True)
+        # No QPACK dynamic table (capacity 0, no blocked streams), as the settings just
+        # sent say: a peer can then neither make one small header block expand to
+        # megabytes by repeating a table entry nor park streams as "blocked" (aioquic
+        # buffers those without bound). A WebTransport CONNECT is one small request.
+        self._max_table_capacity = 0
+        self._blocked_streams = 0
+        self._decoder = pylsqpack.Decoder(0, 0)
 
     def create_webtransport_stream(self, session_id: int, is_unidirectional: bool = False) -> int:
         stream_id = super().create_webtransport_stream(session_id, is_unidirectional)
@@ -76,6 +90,10 @@ class _WtH3Connection(H3Connection):
 
     def _get_local_settings(self) -> dict[int, int]:
         settings = super()._get_local_settings()
+        settings[Setting.QPACK_MAX_TABLE_CAPACITY] = 0
+        settings[Setting.QPACK_BLOCKED_STREAMS] = 0
+        if self._max_field_section is not None:
+            settings[SETTINGS_MAX_FIELD_SECTION_SIZE] = self._max_field_section
         if self._wt_max_sessions > 0:
             settings[codes.SETTINGS_WT_MAX_SESSIONS] = self._wt_max_sessions
         return settings
@@ -139,6 +157,11 @@ class WtConnection(QuicConnectionProtocol):
         self._keepalive_handle: asyncio.TimerHandle | None = self._loop.call_later(
             KEEPALIVE_S, self._keepalive
         )
+        # Server side: the bounds on what the peer may send besides WebTransport payload
+        # (guard.py). Once one is crossed nothing more of this peer reaches HTTP/3.
+        self.guard: ConnectionGuard | None = None
+        self.guard_log: GuardLog | None = None
+        self.guard_tripped: Violation | None = None
 
     # --- helpers used by WtSession -------------------------------------------
 
@@ -235,9 +258,35 @@ class WtConnection(QuicConnectionProtocol):
         elif isinstance(event, ConnectionTerminated):
             reason = f"connection closed: {event.error_code:#x} {event.reason_phrase}".strip()
             self.connection_lost_all(reason)
-        if self._h3 is not None:
-            for h3_event in self._h3.handle_event(event):
-                self._h3_event(h3_event)
+        if self._h3 is None or self.guard_tripped is not None:
+            return
+        h3_events = self._h3.handle_event(event)
+        if self.guard is not None and isinstance(event, StreamDataReceived):
+            violation = self.guard.after_stream_data(
+                self._h3._stream.get(event.stream_id),
+                event.stream_id,
+                len(event.data),
+                accepted=event.stream_id in self.sessions,
+                now=self._loop.time(),
+            )
+            if violation is not None:
+                self.refuse_connection(violation)
+                return
+        for h3_event in h3_events:
+            self._h3_event(h3_event)
+
+    def refuse_connection(self, violation: Violation, code: int = H3_EXCESSIVE_LOAD) -> None:
+        """Close the whole connection for crossing a guard limit: counted, logged
+        (rate-limited), its sessions told at once, nothing more it sends is parsed."""
+        if self.guard_tripped is not None:
+            return
+        self.guard_tripped = violation
+        if self.guard_log is not None:
+            host, port = self.remote_address
+            self.guard_log.refused(f"{host}:{port}", violation, code)
+        self.connection_lost_all(f"refused: {violation.reason}")
+        self._quic.close(error_code=code, reason_phrase=violation.reason)
+        self.schedule_transmit()
 
     def _h3_event(self, event: H3Event) -> None:
         if isinstance(event, WebTransportStreamDataReceived):

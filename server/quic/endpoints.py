@@ -10,6 +10,7 @@ from pathlib import Path
 
 from .certs import CertBundle
 from .connection import IDLE_TIMEOUT_S
+from .guard import GuardLimits, GuardLog
 from .http_side import HttpSide, Route, bind_tcp, serve_http
 from .server import DEFAULT_PROTOCOLS, WtServer, bind_udp, serve_webtransport
 from .session import Authorize, HandlerFactory
@@ -56,6 +57,8 @@ async def serve(
     routes: Mapping[str, Route] | None = None,
     idle_timeout: float = IDLE_TIMEOUT_S,
     authorize: Authorize | None = None,
+    guard_limits: GuardLimits | None = None,
+    guard_log: GuardLog | None = None,
 ) -> Endpoints:
     """WebTransport on UDP and HTTP (hash, static files, routes) on TCP, one port."""
     udp, tcp = bind_pair(host, port)
@@ -69,6 +72,8 @@ async def serve(
             sock=udp,
             idle_timeout=idle_timeout,
             authorize=authorize,
+            guard_limits=guard_limits,
+            guard_log=guard_log,
         )
     except BaseException:
         udp.close()
