@@ -111,9 +111,6 @@ class WtServerConnection(WtConnection):
         if too_large is not None:
             self.refuse_connection(too_large)
             return
-        if self.sessions and len(self.sessions) >= max(1, self.wt_max_sessions):
-            self._refuse(stream_id, 429)  # one session per connection is what we offer
-            return
         headers = decode_headers(event.headers)
         method = headers.get(":method", "")
         if method != "CONNECT":
@@ -121,6 +118,9 @@ class WtServerConnection(WtConnection):
             return
         if headers.get(":protocol") != "webtransport":
             self._refuse(stream_id, 405)
+            return
+        if self.sessions and len(self.sessions) >= max(1, self.wt_max_sessions):
+            self._refuse(stream_id, 429)  # the sessions per connection we advertised
             return
         offered = sf.parse_string_list(headers.get("wt-available-protocols", ""))
         chosen = choose_protocol(offered, self._options.protocols)
