@@ -8,7 +8,13 @@ import logging
 import sys
 from collections.abc import Callable, Sequence
 
-from server.logging_setup import ENV_VAR, LOG_FORMATS, configure_logging, default_log_format
+from server.logging_setup import (
+    ENV_VAR,
+    LOG_FORMATS,
+    configure_logging,
+    default_log_format,
+    default_verbose,
+)
 
 # name -> module under server.commands; each module has add_arguments(parser) and run(args).
 # Imported lazily so `upcast --help` does not pay for torch.
@@ -42,7 +48,9 @@ def build_parser(selected: str | None = None) -> argparse.ArgumentParser:
         prog="upcast",
         description="upcast: cloud-gaming streaming server with a decoupled upscaler worker",
     )
-    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    parser.add_argument(
+        "-v", "--verbose", action="store_true", help="debug logging (also UPCAST_VERBOSE=1)"
+    )
     parser.add_argument(
         "--log-format",
         choices=LOG_FORMATS,
@@ -83,8 +91,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         log_format = args.log_format or default_log_format()
     except ValueError as exc:
         parser.error(str(exc))
-    configure_logging(logging.DEBUG if args.verbose else logging.INFO, log_format)
-    if not args.verbose:
+    verbose = args.verbose or default_verbose()
+    configure_logging(logging.DEBUG if verbose else logging.INFO, log_format)
+    if not verbose:
         # aioquic logs every handshake at INFO; our own loggers say what matters.
         logging.getLogger("quic").setLevel(logging.WARNING)
     try:

@@ -24,6 +24,9 @@ from server.redact import redact_text
 
 LOG_FORMATS = ("text", "json")
 ENV_VAR = "UPCAST_LOG_FORMAT"
+# "1": debug logging, written back by a -v command so the processes it starts
+# (relay, game, worker) log at DEBUG too.
+VERBOSE_ENV_VAR = "UPCAST_VERBOSE"
 TEXT_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
 
 # Attributes every LogRecord has; anything else on a record came from `extra=`.
@@ -97,6 +100,10 @@ def default_log_format(environ: Mapping[str, str] = os.environ) -> str:
     return value
 
 
+def default_verbose(environ: Mapping[str, str] = os.environ) -> bool:
+    return environ.get(VERBOSE_ENV_VAR, "").strip() == "1"
+
+
 def configure_logging(level: int, log_format: str) -> None:
     """One stderr handler in ``log_format`` on the root logger, and the choice in
     the environment for child processes. Like ``logging.basicConfig`` it leaves a
@@ -109,3 +116,5 @@ def configure_logging(level: int, log_format: str) -> None:
     handler.addFilter(RedactingFilter())
     logging.basicConfig(level=level, handlers=[handler])
     os.environ[ENV_VAR] = log_format
+    if level <= logging.DEBUG:
+        os.environ[VERBOSE_ENV_VAR] = "1"
