@@ -48,9 +48,7 @@ def run(coro: Coroutine[Any, Any, None], timeout: float = 60.0) -> None:
 
 
 def refusals(relay: Relay, reason: str) -> float:
-    value = relay.registry.get_sample_value(
-        "upcast_relay_guard_refusals_total", {"reason": reason}
-    )
+    value = relay.registry.get_sample_value("upcast_relay_guard_refusals_total", {"reason": reason})
     return value or 0.0
 
 
@@ -81,7 +79,7 @@ def test_a_huge_declared_headers_frame_is_a_violation_at_once() -> None:
     guard = ConnectionGuard(GuardLimits(), now=0.0)
     stream = H3Stream(0)
     stream.frame_type, stream.frame_size, stream.buffer = FrameType.HEADERS, HUGE, b"x" * 1000
-    violation = guard.after_stream_data(stream, 0, 1000, accepted=False, now=0.0)
+    violation = guard.after_stream_data(stream, 0, 1000, (), now=0.0)
     assert violation is not None and violation.reason == "h3_frame_too_large"
 
 
@@ -90,7 +88,7 @@ def test_a_huge_settings_frame_on_the_control_stream_is_a_violation() -> None:
     stream = H3Stream(2)
     stream.stream_type = StreamType.CONTROL
     stream.frame_type, stream.frame_size = FrameType.SETTINGS, 1 << 20
-    violation = guard.after_stream_data(stream, 2, 100, accepted=False, now=0.0)
+    violation = guard.after_stream_data(stream, 2, 100, (), now=0.0)
     assert violation is not None and violation.reason == "h3_frame_too_large"
 
 
@@ -100,27 +98,47 @@ def test_a_huge_unknown_frame_is_not_buffered_but_counted_until_the_limit() -> N
     stream = H3Stream(0)
     stream.frame_type, stream.frame_size = 0x21, HUGE  # reserved (grease) type: discarded
     for _ in range(9):
-        assert guard.after_stream_data(stream, 0, 1000, accepted=False, now=0.0) is None
-    violation = guard.after_stream_data(stream, 0, 1001, accepted=False, now=0.0)
+        assert guard.after_stream_data(stream, 0, 1000, (), now=0.0) is None
+    violation = guard.after_stream_data(stream, 0, 1001, (), now=0.0)
     assert violation is not None and violation.reason == "h3_pre_connect_bytes"
 
 
 def test_webtransport_payload_is_not_overhead() -> None:
     limits = GuardLimits(overhead_burst_bytes=1000, overhead_bytes_per_s=1)
     guard = ConnectionGuard(limits, now=0.0)
-    stream = H3Stream(3)
-    stream.stream_type = StreamType.WEBTRANSPORT
+    stream = H3Stream(2)
+    stream.stream_type, stream.session_id = StreamType.WEBTRANSPORT, 0
     for _ in range(100):
-        assert guard.after_stream_data(stream, 3, 100_000, accepted=False, now=0.0) is None
+        assert guard.after_stream_data(stream, 2, 100_000, {0}, now=0.0) is None
+
+
+def test_webtransport_streams_of_a_session_never_accepted_are_overhead() -> None:
+    limits = GuardLimits(overhead_burst_bytes=1000, overhead_bytes_per_s=1)
+    guard = ConnectionGuard(limits, now=0.0)
+    stream = H3Stream(2)
+    stream.stream_type, stream.session_id = StreamType.WEBTRANSPORT, 4
+    violation = guard.after_stream_data(stream, 2, 100_000, {0}, now=0.0)
+    assert violation is not None and violation.reason == "h3_overhead_rate"
+
+
+def test_streams_without_payload_are_bounded_per_connection() -> None:
+    guard = ConnectionGuard(GuardLimits(max_overhead_streams=10), now=0.0)
+    for i in range(10):
+        stream = H3Stream(4 * i + 2)
+        stream.stream_type = 0x21  # a reserved (grease) type: discarded by aioquic
+        assert guard.after_stream_data(stream, stream.stream_id, 1, (), now=0.0) is None
+    eleventh = H3Stream(42)
+    violation = guard.after_stream_data(eleventh, 42, 1, (), now=0.0)
+    assert violation is not None and violation.reason == "h3_streams"
 
 
 def test_overhead_beyond_its_rate_is_a_violation() -> None:
     limits = GuardLimits(overhead_burst_bytes=1000, overhead_bytes_per_s=100)
     guard = ConnectionGuard(limits, now=0.0)
     stream = H3Stream(0)
-    assert guard.after_stream_data(stream, 0, 900, accepted=True, now=0.0) is None
-    assert guard.after_stream_data(stream, 0, 150, accepted=True, now=0.5) is None
-    violation = guard.after_stream_data(stream, 0, 500, accepted=True, now=0.6)
+    assert guard.after_stream_data(stream, 0, 900, {0}, now=0.0) is None
+    assert guard.after_stream_data(stream, 0, 150, {0}, now=0.5) is None
+    violation = guard.after_stream_data(stream, 0, 500, {0}, now=0.6)
     assert violation is not None and violation.reason == "h3_overhead_rate"
 
 
@@ -285,12 +303,12 @@ async def watched_relay(cert: CertBundle, **config: Any) -> AsyncIterator[tuple[
         (
             "DATA before any HEADERS",
             encode_uint_var(FrameType.DATA) + encode_uint_var(HUGE),
-            "h3_pre_connect_bytes",  # aioquic passes DATA on as it comes: never buffered
+            None,  # aioquic's own H3_FRAME_UNEXPECTED (0x105), at once
         ),
     ],
 )
 def test_request_stream_floods_are_closed_within_a_second_and_viewers_go_on(
-    cert: CertBundle, name: str, head: bytes, reason: str
+    cert: CertBundle, name: str, head: bytes, reason: str | None
 ) -> None:
     async def main() -> None:
         async with watched_relay(cert) as (relay, viewer):
@@ -301,7 +319,10 @@ def test_request_stream_floods_are_closed_within_a_second_and_viewers_go_on(
                 assert peer.terminated is not None, f"{name}: still open after {sent} B"
                 assert peer.terminated_at is not None
                 assert peer.terminated_at - started < 1.0, name
-            assert refusals(relay, reason) == 1
+            if reason is None:
+                assert peer.terminated.error_code == 0x105
+            else:
+                assert refusals(relay, reason) == 1
             await viewer.until_count(before + 10)  # the stream goes on
 
     run(main())

@@ -266,7 +266,7 @@ class WtConnection(QuicConnectionProtocol):
                 self._h3._stream.get(event.stream_id),
                 event.stream_id,
                 len(event.data),
-                accepted=event.stream_id in self.sessions,
+                self.sessions,
                 now=self._loop.time(),
             )
             if violation is not None:

@@ -21,7 +21,7 @@ connection's Initial; each refusal is counted by reason and logged, rate-limited
 from __future__ import annotations
 
 from collections import OrderedDict
-from collections.abc import Callable
+from collections.abc import Callable, Container
 from dataclasses import dataclass
 from urllib.parse import unquote
 
@@ -42,6 +42,7 @@ _BUFFERED_CONTROL_FRAMES = (FrameType.SETTINGS, FrameType.MAX_PUSH_ID)
 FRAME_TOO_LARGE = "h3_frame_too_large"
 HEADERS_TOO_LARGE = "h3_headers_too_large"
 STREAM_BUFFER = "h3_stream_buffer"
+STREAMS = "h3_streams"
 PRE_CONNECT_BYTES = "h3_pre_connect_bytes"
 OVERHEAD_RATE = "h3_overhead_rate"
 CONNECT_DEADLINE = "connect_deadline"
@@ -53,6 +54,7 @@ REASONS = (
     FRAME_TOO_LARGE,
     HEADERS_TOO_LARGE,
     STREAM_BUFFER,
+    STREAMS,
     PRE_CONNECT_BYTES,
     OVERHEAD_RATE,
     CONNECT_DEADLINE,
@@ -78,6 +80,10 @@ class GuardLimits:
     """Decoded size of one header section (names + values + 32 per field, RFC 9114 4.2.2)."""
     max_stream_buffer_bytes: int = 48 * 1024
     """Bytes aioquic may hold for one HTTP/3 stream that is not WebTransport payload."""
+    max_overhead_streams: int = 64
+    """Streams over the connection's life that carry no WebTransport payload of an
+    accepted session (a browser opens 4 or 5: control, QPACK, CONNECT, a grease one).
+    aioquic keeps a record of each such stream until the connection ends."""
     max_pre_connect_bytes: int = 64 * 1024
     """Bytes on one request stream before a CONNECT on it is accepted."""
     overhead_bytes_per_s: int = 32 * 1024
@@ -138,21 +144,35 @@ class ConnectionGuard:
         self.limits = limits
         self._overhead = TokenBucket(limits.overhead_bytes_per_s, limits.overhead_burst_bytes, now)
         self._pre_connect: dict[int, int] = {}
+        self._overhead_streams: set[int] = set()
 
     def after_stream_data(
-        self, stream: H3Stream | None, stream_id: int, size: int, accepted: bool, now: float
+        self,
+        stream: H3Stream | None,
+        stream_id: int,
+        size: int,
+        sessions: Container[int],
+        now: float,
     ) -> Violation | None:
         """Check one StreamDataReceived of `size` bytes once aioquic's HTTP/3 layer has
         handled it. `stream` is aioquic's record of the stream (None when it already
-        forgot it); `accepted`: the stream is the CONNECT stream of an accepted session."""
-        if stream is not None and _is_webtransport(stream):
+        forgot it); `sessions`: the ids (CONNECT stream ids) of the accepted sessions."""
+        if stream is not None and _is_webtransport(stream) and stream.session_id in sessions:
             return None  # payload: the session's own ingress limit applies
+        if stream_id not in self._overhead_streams:
+            self._overhead_streams.add(stream_id)
+            if len(self._overhead_streams) > self.limits.max_overhead_streams:
+                return Violation(
+                    STREAMS,
+                    f"more than {self.limits.max_overhead_streams} streams without"
+                    " WebTransport payload of an accepted session",
+                )
         if not self._overhead.take(size, now):
             return Violation(
                 OVERHEAD_RATE,
                 f"more than {self.limits.overhead_bytes_per_s} B/s of HTTP/3 overhead",
             )
-        if stream_id % 4 == 0 and not accepted:  # a client-initiated bidirectional stream
+        if stream_id % 4 == 0 and stream_id not in sessions:  # client-initiated bidi
             total = self._pre_connect.get(stream_id, 0) + size
             self._pre_connect[stream_id] = total
             if total > self.limits.max_pre_connect_bytes:
