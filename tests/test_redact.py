@@ -82,8 +82,23 @@ def test_text_masks_jwts_and_parameters_anywhere() -> None:
     assert shown.count(REDACTED) == 4
 
 
+def test_text_masks_dict_and_json_entries_and_a_jwk() -> None:
+    headers = {":path": "/g", "authorization": f"Bearer {SECRET}", "origin": "o"}
+    jwk = {"kty": "oct", "alg": "HS256", "k": SECRET}
+    for text in (str(headers), json.dumps(headers), str(jwk), json.dumps(jwk)):
+        shown = redact_text(text)
+        assert SECRET not in shown and REDACTED in shown
+        assert "/g" in shown or "HS256" in shown
+
+
 def test_text_leaves_lookalikes_alone() -> None:
-    for text in ("keyframe=3 monkey=4", "a=b", "user@example.com", "no secrets here"):
+    for text in (
+        "keyframe=3 monkey=4",
+        "a=b",
+        "user@example.com",
+        "no secrets here",
+        "{'kty': 'oct', 'path': '/g'} it's: 'fine'",
+    ):
         assert redact_text(text) == text
 
 
