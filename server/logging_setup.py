@@ -63,7 +63,8 @@ class RedactingFilter(logging.Filter):
     defence for a secret that a log call formats by mistake (callers still redact
     URLs themselves). The message is formatted once, masked and stored back with no
     args; a traceback is formatted into ``exc_text`` and masked too, which both
-    formatters then print instead of formatting ``exc_info`` again."""
+    formatters then print instead of formatting ``exc_info`` again; string
+    ``extra=`` fields are masked as well."""
 
     _exc_formatter = logging.Formatter()
 
@@ -81,6 +82,9 @@ class RedactingFilter(logging.Filter):
             record.exc_text = redact_text(record.exc_text)
         if record.stack_info:
             record.stack_info = redact_text(record.stack_info)
+        for name, value in record.__dict__.items():  # `extra=` fields the JSON lines show
+            if isinstance(value, str) and name not in _STANDARD:
+                record.__dict__[name] = redact_text(value)
         return True
 
 

@@ -128,7 +128,7 @@ def test_filter_masks_messages_args_and_tracebacks(formatter: logging.Formatter)
     def calls(log: logging.Logger) -> None:
         log.warning("relay %s unreachable", f"http://h:1/?jwt={SECRET}")
         log.info(f"bare {JWT} in an f-string")
-        log.debug("plain %d line", 7)
+        log.debug("plain %d line", 7, extra={"relay_url": f"https://h/?jwt={SECRET}"})
         try:
             raise ConnectionError(f"CONNECT to https://h/?token={SECRET} refused")
         except ConnectionError:
