@@ -25,6 +25,7 @@ from upscalers.fsr1_cpu import Fsr1Cpu, usable_input
 from upscalers.fsr1_easu import PAD, Easu, axis_map, replicate_pad_into
 from upscalers.fsr1_fused import easu_fused, easu_rcas_fused
 from upscalers.fsr1_rcas import DEFAULT_SHARPNESS, Rcas
+from upscalers.kernel_readiness import kernels_ready
 from upscalers.resample import color_as_nchw
 
 
@@ -56,7 +57,12 @@ class _Fsr1Base(Upscaler):
             )
         # The numba kernels take (H, W, 3) uint8 frames on the CPU; anything else (a
         # tensor already on a GPU) goes through torch whatever the backend.
-        self._cpu: Fsr1Cpu | None = Fsr1Cpu() if backend != "torch" and numba_ok else None
+        # "auto" waits for the kernels to be compiled (kernel_readiness) rather than
+        # compiling them on the stream's first frame.
+        use_numba = numba_ok and (
+            backend == "numba" or (backend == "auto" and kernels_ready("FSR 1"))
+        )
+        self._cpu: Fsr1Cpu | None = Fsr1Cpu() if use_numba else None
         self.backend: Backend = "numba" if self._cpu is not None else "torch"
         self._easu = Easu(dtype=dtype)
         # compile=True: one fused inductor kernel instead of the banded eager ops.

@@ -62,6 +62,7 @@ import torch.nn.functional as F
 from server.frame import FrameFlags, RenderFrame, Size
 from upscalers import temporal_ops as ops
 from upscalers.base import BACKENDS, Backend, Upscaler, numba_can_run
+from upscalers.kernel_readiness import kernels_ready
 
 if TYPE_CHECKING:
     from upscalers.temporal_cpu import HostTemporal
@@ -242,7 +243,9 @@ class TemporalUpscaler(Upscaler):
         # Imported here: numba takes a while to import, and only this path needs it.
         from upscalers import temporal_cpu
 
-        if self.backend == "auto" and not temporal_cpu.supports(render, display):
+        if self.backend == "auto" and not (
+            temporal_cpu.supports(render, display) and kernels_ready("temporal")
+        ):
             return None
         scale = _integer_scale(render, display) or 1
         return temporal_cpu.HostTemporal(self.params, render, display, scale)

@@ -50,6 +50,7 @@ from upscalers.framegen.geometry import Reprojection, pixel_space_matrices, sky_
 from upscalers.framegen.mesh import MeshOptions, build_mesh
 from upscalers.framegen.raster import rasterize
 from upscalers.framegen.sample import bilinear, inside, nearest_index, to_texture
+from upscalers.kernel_readiness import kernels_ready
 
 if TYPE_CHECKING:
     from upscalers.framegen.mpe_cpu import HostMeshProjection
@@ -75,6 +76,8 @@ class MpeOptions:
 
 def _resolve_backend(backend: str, device: torch.device) -> Literal["torch", "numba"]:
     if backend == "torch" or (backend == "auto" and device.type != "cpu"):
+        return "torch"
+    if backend == "auto" and not kernels_ready("MPE frame prediction"):
         return "torch"
     if backend in ("auto", "numba"):
         if device.type != "cpu":
