@@ -94,7 +94,7 @@ _LIST = [
         "many_request_streams",
         sessions.many_request_streams,
         "5000 HTTP/3 request streams with unfinished HEADERS, no CONNECT ever",
-        _guard("connect_deadline", "h3_pre_connect_bytes", "h3_overhead_rate"),
+        _guard("h3_streams", "connect_deadline", "h3_pre_connect_bytes", "h3_overhead_rate"),
     ),
     Scenario(
         "stalled_viewers",
