@@ -20,6 +20,7 @@ connection's Initial; each refusal is counted by reason and logged, rate-limited
 
 from __future__ import annotations
 
+import logging
 from collections import OrderedDict
 from collections.abc import Callable, Container
 from dataclasses import dataclass
@@ -29,7 +30,7 @@ from aioquic.h3.connection import FrameType, H3Stream, StreamType
 
 from server.moq.limits import TokenBucket
 
-from .refusals import RefusalLog
+from .refusals import RateLimitedLog
 
 H3_EXCESSIVE_LOAD = 0x107
 H3_REQUEST_REJECTED = 0x10B
@@ -124,17 +125,36 @@ class GuardLog:
     def __init__(
         self,
         on_refusal: Callable[[str], None] | None = None,
-        refusal_log: RefusalLog | None = None,
+        log: RateLimitedLog | None = None,
     ) -> None:
         self.counts: dict[str, int] = dict.fromkeys(REASONS, 0)
         self.on_refusal = on_refusal
-        self.log = refusal_log or RefusalLog(what="QUIC connection")
+        self.log = log or RateLimitedLog(
+            logger=logging.getLogger(__name__),
+            summary="%d more QUIC connections closed or refused (log lines suppressed)",
+        )
 
-    def refused(self, remote: str, violation: Violation, code: int = H3_EXCESSIVE_LOAD) -> None:
+    def refused(self, remote: str, violation: Violation, code: int | None = None) -> None:
+        """`code`: the HTTP/3 error code the connection was closed with; None for a new
+        connection that was dropped before it existed."""
         self.counts[violation.reason] = self.counts.get(violation.reason, 0) + 1
         if self.on_refusal is not None:
             self.on_refusal(violation.reason)
-        self.log.refused(remote, code, f"{violation.reason}: {violation.detail}")
+        if code is None:
+            self.log.warning(
+                "dropped new QUIC connection from %s: %s: %s",
+                remote,
+                violation.reason,
+                violation.detail,
+            )
+        else:
+            self.log.warning(
+                "closed QUIC connection from %s with %#x: %s: %s",
+                remote,
+                code,
+                violation.reason,
+                violation.detail,
+            )
 
 
 class ConnectionGuard:

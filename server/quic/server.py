@@ -237,7 +237,7 @@ class GuardedQuicServer(QuicServer):
         if violation is not None:
             # Dropped without an answer: a CONNECTION_CLOSE to a spoofed source would
             # make us an amplifier, and the client's retries cost one header parse each.
-            self.guard_log.refused(f"{host}:{port}", violation, 0)
+            self.guard_log.refused(f"{host}:{port}", violation)
             return
         super().datagram_received(data, addr)
         protocol = self._protocols.get(cid)
