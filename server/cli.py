@@ -8,6 +8,7 @@ import logging
 import sys
 from collections.abc import Callable, Sequence
 
+from server.commands.help_format import DefaultsHelpFormatter
 from server.logging_setup import (
     ENV_VAR,
     LOG_FORMATS,
@@ -47,6 +48,7 @@ def build_parser(selected: str | None = None) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="upcast",
         description="upcast: cloud-gaming streaming server with a decoupled upscaler worker",
+        formatter_class=DefaultsHelpFormatter,
     )
     parser.add_argument(
         "-v", "--verbose", action="store_true", help="debug logging (also UPCAST_VERBOSE=1)"
@@ -59,7 +61,9 @@ def build_parser(selected: str | None = None) -> argparse.ArgumentParser:
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name, (module, help_text) in COMMANDS.items():
-        p = sub.add_parser(name, help=help_text, description=help_text)
+        p = sub.add_parser(
+            name, help=help_text, description=help_text, formatter_class=DefaultsHelpFormatter
+        )
         if name == selected:
             add_arguments, run = _load(module)
             add_arguments(p)

@@ -10,11 +10,13 @@ from __future__ import annotations
 import argparse
 import importlib
 
+from server.commands.help_format import DefaultsHelpFormatter
+
 
 def add_choice_arguments(
     parser: argparse.ArgumentParser, kind: str, choices: dict[str, str]
 ) -> None:
-    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.formatter_class = DefaultsHelpFormatter
     parser.epilog = f"{kind}s:\n" + "\n".join(f"  {k:10} {v}" for k, v in choices.items())
     parser.add_argument(
         "choice", metavar=kind.upper(), choices=sorted(choices), help=f"which {kind}"
@@ -27,6 +29,10 @@ def run_choice(
 ) -> int:
     name: str = args.choice
     module = importlib.import_module(f"{package}.{name}")
-    sub = argparse.ArgumentParser(prog=f"upcast {command} {name}", description=choices[name])
+    sub = argparse.ArgumentParser(
+        prog=f"upcast {command} {name}",
+        description=choices[name],
+        formatter_class=DefaultsHelpFormatter,
+    )
     module.add_arguments(sub)
     return int(module.run(sub.parse_args(args.options)))
