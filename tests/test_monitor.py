@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import re
 
 import pytest
 from prometheus_client import CollectorRegistry, generate_latest
@@ -99,3 +100,26 @@ def test_monitors_share_one_registry_by_component() -> None:
     text = generate_latest(registry).decode()
     assert 'upcast_frames_total{component="relay/a"} 2.0' in text
     assert 'upcast_frames_total{component="relay/b"} 1.0' in text
+
+
+def test_budget_warnings_are_summarised_not_repeated(caplog: pytest.LogCaptureFixture) -> None:
+    """A stack that cannot hold its target: 90 s of one check a second, every stage and the
+    rate over budget, gives one line at the first miss and then one per WARN_EVERY_S."""
+    from server.monitor import WARN_EVERY_S
+
+    clock = FakeClock()
+    mon = FrameRateMonitor("session", 60.0, clock=clock)
+    frame = 0
+    with caplog.at_level(logging.WARNING, logger="server.monitor"):
+        for second in range(90):
+            for _ in range(20):  # 20 fps against a 60 fps target
+                clock.t = 100.0 + frame / 20.0
+                frame += 1
+                mon.frame(_stamps(render_ms=40.0, upscale_ms=30.0))  # type: ignore[arg-type]
+            assert set(mon.check_budgets()) == {"fps", "render", "upscale"}, second
+    lines = [r.getMessage() for r in caplog.records]
+    assert 3 <= len(lines) <= 1 + 90 / WARN_EVERY_S, lines
+    # Each line names every missed budget and how often it was missed since the last one.
+    assert all("fps target" in line and "render" in line and "upscale" in line for line in lines)
+    counts = re.findall(r"\[(\d+)/(\d+) checks\]", lines[1])
+    assert counts and all(a == b and int(a) >= WARN_EVERY_S - 1 for a, b in counts)
