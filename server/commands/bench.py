@@ -16,6 +16,7 @@ BENCHMARKS: dict[str, str] = {
     "serve": "upcast serve with N sessions: fps each holds, before and after a worker is killed",
     "compile_start": "upscaler compile=True at a worker start: inductor cache cold and warm",
     "reframe": "layer caching on the neural upscaler: policies, levels, speedup against FLIP",
+    "adversary": "relay under attack scenarios: good viewers' fps, relay CPU and RSS, refusals",
 }
 
 
