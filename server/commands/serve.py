@@ -91,7 +91,7 @@ def _sessions(args: argparse.Namespace) -> list[ServedSession] | None:
     from server.serve.supervisor import ServedSession
     from server.stream_config import StreamConfig
 
-    base = session_config_from(args)
+    base = session_config_from(args, sessions=args.sessions or 1)
     stream = validated(
         StreamConfig,
         "stream",
