@@ -216,6 +216,8 @@ async def measure(
         attack_error = None
     except Exception as exc:  # the attacker's failure is a finding, not the bench's end
         result, attack_error = None, f"{type(exc).__name__}: {exc}"
+    # An attack the relay ended early still gets its whole window measured.
+    await asyncio.sleep(max(0.0, t1 + args.attack_s - time.monotonic()))
     cpu1, t2 = cpu_seconds(pid), time.monotonic()
     await asyncio.sleep(args.after_s)
     t3 = time.monotonic()
