@@ -52,7 +52,6 @@ from dataclasses import dataclass
 TRACK_ID = 1
 SYNC_SAMPLE_FLAGS = 0x02000000
 NON_SYNC_SAMPLE_FLAGS = 0x01010000
-_NON_SYNC_BIT = 0x00010000
 
 _TFHD_DEFAULT_BASE_IS_MOOF = 0x020000
 _TRUN_FLAGS = 0x000001 | 0x000100 | 0x000200 | 0x000400
@@ -253,7 +252,7 @@ def media_fragment(
     return header + sample
 
 
-# --- Reading (tests, benchmarks, load-test clients) ----------------------------------------
+# --- Reading boxes (fragments of any muxer: server/cmaf_read.py) -----------------------------
 
 
 @dataclass(frozen=True)
@@ -298,39 +297,3 @@ def find_box(data: bytes, path: list[bytes], start: int = 0, end: int | None = N
         start, end = span.payload_start, span.end
     assert span is not None, "path must not be empty"
     return span
-
-
-@dataclass(frozen=True)
-class FragmentInfo:
-    """What a one-sample moof + mdat says about its sample."""
-
-    sequence: int
-    decode_time: int
-    duration: int
-    keyframe: bool
-    sample: bytes
-
-
-def parse_fragment(data: bytes) -> FragmentInfo:
-    """Read back a fragment written by :func:`media_fragment` (or any one-sample
-    fragment with default-base-is-moof and per-sample duration/size/flags)."""
-    mfhd = find_box(data, [b"moof", b"mfhd"])
-    (sequence,) = struct.unpack_from(">I", data, mfhd.payload_start + 4)
-    tfdt = find_box(data, [b"moof", b"traf", b"tfdt"])
-    version = data[tfdt.payload_start]
-    fmt = ">Q" if version == 1 else ">I"
-    (decode_time,) = struct.unpack_from(fmt, data, tfdt.payload_start + 4)
-    trun = find_box(data, [b"moof", b"traf", b"trun"])
-    (flags_word, count) = struct.unpack_from(">II", data, trun.payload_start)
-    if flags_word & 0xFFFFFF != _TRUN_FLAGS or count != 1:
-        raise ValueError(f"unsupported trun: flags {flags_word:#x}, {count} samples")
-    offset, duration, size, sample_flags = struct.unpack_from(">iIII", data, trun.payload_start + 8)
-    moof = find_box(data, [b"moof"])
-    first = moof.start + offset
-    return FragmentInfo(
-        sequence=sequence,
-        decode_time=decode_time,
-        duration=duration,
-        keyframe=not sample_flags & _NON_SYNC_BIT,
-        sample=data[first : first + size],
-    )

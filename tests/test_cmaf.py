@@ -16,9 +16,9 @@ from server.cmaf import (
     init_segment,
     iter_boxes,
     media_fragment,
-    parse_fragment,
     split_annexb,
 )
+from server.cmaf_read import parse_fragment
 
 # A real x264 global header: constrained baseline (0x42, 0xc0), level 3.1 (0x1f).
 SPS = bytes.fromhex("6742c01fda0280bfe59a808080a0000003002000000f11e30654")

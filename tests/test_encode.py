@@ -10,7 +10,7 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
-from server.cmaf import parse_fragment
+from server.cmaf_read import parse_fragment
 from server.encode import EncodedFrame, EncoderConfig, VideoEncoder, default_bitrate
 
 W, H, FPS = 320, 180, 30.0

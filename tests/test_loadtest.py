@@ -155,7 +155,7 @@ def test_no_broadcast_is_a_clear_error(cert: CertBundle) -> None:
 
 
 def test_loop_source_restamps_fragments() -> None:
-    from server.cmaf import parse_fragment
+    from server.cmaf_read import parse_fragment
 
     source = FrameSource(SyntheticSettings("http://x/", SMALL, 30.0, gop_seconds=0.5))
     frames = [source.next(i, 1_000_000 + i * 33_333) for i in range(40)]

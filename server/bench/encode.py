@@ -27,7 +27,8 @@ from av.video.codeccontext import VideoCodecContext
 from PIL import Image
 
 from server.bench.report import BenchReport, summarize_ms
-from server.cmaf import MOOF_SIZE, parse_fragment
+from server.cmaf import MOOF_SIZE
+from server.cmaf_read import parse_fragment
 from server.encode import EncodedFrame, EncoderConfig, VideoEncoder
 from server.frame import Size
 

@@ -35,7 +35,8 @@ import numpy as np
 import numpy.typing as npt
 
 from server.catalog import catalog_for
-from server.cmaf import media_fragment, parse_fragment
+from server.cmaf import media_fragment
+from server.cmaf_read import parse_fragment
 from server.encode import EncodedFrame, EncoderConfig, VideoEncoder
 from server.event_loop import install_uvloop
 from server.frame import Camera, FrameMeta, Size

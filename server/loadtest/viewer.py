@@ -21,7 +21,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
-from server.cmaf import parse_fragment
+from server.cmaf_read import parse_fragment
 from server.moq.events import (
     AnnounceReceived,
     Event,
