@@ -109,6 +109,31 @@ def track_defaults(init: bytes) -> dict[int, TrackDefaults]:
     return found
 
 
+def track_timescales(init: bytes) -> dict[int, int]:
+    """Each track's media timescale (ticks per second) in an init segment: tkhd's
+    track_ID and mdhd's timescale of every moov > trak."""
+    found: dict[int, int] = {}
+    for moov in (b for b in iter_boxes(init) if b.kind == b"moov"):
+        for trak in (b for b in _children(init, moov) if b.kind == b"trak"):
+            boxes = _children(init, trak)
+            tkhd = next((b for b in boxes if b.kind == b"tkhd"), None)
+            mdia = next((b for b in boxes if b.kind == b"mdia"), None)
+            mdhd = (
+                None
+                if mdia is None
+                else next((b for b in _children(init, mdia) if b.kind == b"mdhd"), None)
+            )
+            if tkhd is None or mdhd is None:
+                continue
+            version, _, cur = _full_box(init, tkhd)
+            cur.take(">QQ" if version == 1 else ">II")  # creation, modification times
+            track = cur.one(">I")
+            version, _, cur = _full_box(init, mdhd)
+            cur.take(">QQ" if version == 1 else ">II")
+            found[track] = cur.one(">I")
+    return found
+
+
 @dataclass
 class _Cursor:
     """Reads big-endian fields from a box payload, refusing to run past its end."""

@@ -22,10 +22,16 @@ from .viewer_stats import ViewerStats, percentiles
 TABLE_ROWS = 20
 
 
+def latency_ms(stats: ViewerStats) -> list[float]:
+    """publish -> receive; for a publisher without a timing track, the media-clock delay."""
+    return stats.publish_to_receive_ms or stats.media_delay_ms()
+
+
 def held(stats: ViewerStats, min_fps: float, max_p95_ms: float) -> bool:
-    if not stats.connected or stats.disconnected or not stats.publish_to_receive_ms:
+    samples = latency_ms(stats)
+    if not stats.connected or stats.disconnected or not samples:
         return False
-    p95 = float(np.percentile(stats.publish_to_receive_ms, 95))
+    p95 = float(np.percentile(samples, 95))
     return stats.fps() >= min_fps and p95 <= max_p95_ms
 
 
@@ -46,9 +52,11 @@ def summary(result: LoadResult) -> dict[str, Any]:
     fps = [s.fps() for s in stats]
     publish: list[float] = []
     render_end: list[float] = []
+    media: list[float] = []
     for s in stats:
         publish.extend(s.publish_to_receive_ms)
         render_end.extend(s.render_end_to_receive_ms)
+        media.extend(s.media_delay_ms())
     window_s = result.plan.window_end - result.plan.window_start
     published = max((s.published for s in stats), default=0)
     pooled = percentiles(publish)
@@ -64,6 +72,7 @@ def summary(result: LoadResult) -> dict[str, Any]:
         "mbit_s_total": round(sum(s.mbit_s() for s in stats), 2),
         "publish_to_receive_ms": pooled,
         "render_end_to_receive_ms": percentiles(render_end),
+        "media_delay_ms": percentiles(media),
         "median_ms": pooled.get("p50"),
         "p95_ms": pooled.get("p95"),
         "relay_cpu_percent": _round(result.relay_cpu_percent),
@@ -150,7 +159,7 @@ def table(result: LoadResult) -> str:
     )
     lines = [head, "-" * len(head)]
     for s in result.stats[:TABLE_ROWS]:
-        pub = percentiles(s.publish_to_receive_ms)
+        pub = percentiles(latency_ms(s))
         rend = percentiles(s.render_end_to_receive_ms)
         ok = "yes" if held(s, cfg.min_fps, cfg.max_p95_ms) else f"NO {s.error or ''}".rstrip()
         lines.append(
@@ -160,7 +169,7 @@ def table(result: LoadResult) -> str:
     if len(result.stats) > TABLE_ROWS:
         lines.append(f"{'...':>8} ({len(result.stats) - TABLE_ROWS} more viewers in the JSON)")
     summ = summary(result)
-    pub = summ["publish_to_receive_ms"]
+    pub = _latency(summ)
     rend = summ["render_end_to_receive_ms"]
     lines.append("-" * len(head))
     lines.append(
@@ -175,7 +184,7 @@ def table(result: LoadResult) -> str:
 def summary_lines(result: LoadResult) -> list[str]:
     """The run in two lines (below the table, and per step of --find-max), plus notes."""
     summ = summary(result)
-    pub = summ["publish_to_receive_ms"]
+    pub = _latency(summ)
     lines: list[str] = []
     relay_cpu = (
         f"{summ['relay_cpu_percent']:.0f}% of a core"
@@ -187,7 +196,7 @@ def summary_lines(result: LoadResult) -> list[str]:
     lines.append(
         f"fps min {summ['fps_min']:.1f} / median {summ['fps_median']:.1f}"
         f" (publisher {summ['publisher_fps']}); lost {summ['lost_total']};"
-        f" publish->receive p50/p95/p99 {_ms(pub, 'p50').strip()}/{_ms(pub, 'p95').strip()}"
+        f" {_latency_name(summ)} p50/p95/p99 {_ms(pub, 'p50').strip()}/{_ms(pub, 'p95').strip()}"
         f"/{_ms(pub, 'p99').strip()} ms;"
         f" relay CPU {relay_cpu}; load-test CPU {_cpu(summ['loadtest_cpu_percent'])}"
         f" ({config_dict(result)['viewer_mode']}: {workers})"
@@ -198,6 +207,17 @@ def summary_lines(result: LoadResult) -> list[str]:
     )
     lines.extend(f"note: {n}" for n in result.notes)
     return lines
+
+
+def _latency(summ: dict[str, Any]) -> dict[str, float | int]:
+    pub: dict[str, float | int] = summ["publish_to_receive_ms"]
+    return pub if pub.get("count") else summ["media_delay_ms"]
+
+
+def _latency_name(summ: dict[str, Any]) -> str:
+    if summ["publish_to_receive_ms"].get("count") or not summ["media_delay_ms"].get("count"):
+        return "publish->receive"
+    return "no timing track: media-clock delay over the fastest frame"
 
 
 def _cpu(value: float | None) -> str:

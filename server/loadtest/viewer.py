@@ -4,13 +4,19 @@ Each viewer asks the relay for announces, and once the broadcast is announced
 subscribes ``catalog.json``; the catalog names the video track, which it then
 subscribes together with ``timing`` (the browser does the same, so the relay
 sees the same requests). Frames are measured, never decoded: the load is the
-relay's, not ours. ``run_viewers`` drives a group of viewers in one event loop
+relay's, not ours. Fragments are read with the general CMAF reader, so a stream
+from another publisher (moq-rs's CMAF importer, FFmpeg) is measured too: its
+init segment (the catalog's ``container.init``) gives the timescale and trex
+defaults; without a timing track, loss and latency come from the media clock
+(``viewer_stats``). ``run_viewers`` drives a group of viewers in one event loop
 along a RunPlan and reports progress once a second.
 """
 
 from __future__ import annotations
 
 import asyncio
+import base64
+import binascii
 import contextlib
 import json
 import logging
@@ -21,7 +27,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
-from server.cmaf_read import parse_fragment
+from server.cmaf_read import TrackDefaults, parse_fragment, track_defaults, track_timescales
 from server.moq.events import (
     AnnounceReceived,
     Event,
@@ -82,6 +88,9 @@ class LoadViewer:
         self.link: MoqLink | None = None
         self._tracks: dict[int, str] = {}  # our subscription id -> track name
         self._video_track: str | None = None
+        # From the catalog's init segment; upcast's own stream counts in microseconds.
+        self._defaults: dict[int, TrackDefaults] = {}
+        self._timescale = 1_000_000
         self._closing = False
 
     async def connect(self) -> None:
@@ -159,12 +168,15 @@ class LoadViewer:
         now = time.monotonic()
         if track == self._video_track:
             wall_us = time.time_ns() // 1000
+            pts: int | None = None
+            duration: int | None = None
             try:
-                pts: int | None = parse_fragment(event.payload).decode_time
+                info = parse_fragment(event.payload, self._defaults)
+                pts = info.decode_time * 1_000_000 // self._timescale
+                duration = sum(s.duration for s in info.samples) * 1_000_000 // self._timescale
             except (ValueError, struct.error):
-                pts = None
                 self.stats.bad_fragments += 1
-            self.stats.on_video(pts, len(event.payload), now, wall_us)
+            self.stats.on_video(pts, len(event.payload), now, wall_us, duration_us=duration)
         elif track == TIMING_TRACK:
             try:
                 record = json.loads(event.payload)
@@ -184,9 +196,22 @@ class LoadViewer:
             return
         self.stats.catalog = True
         if self._video_track is None:
+            self._read_init(renditions[video_track])
             self._video_track = str(video_track)
             self._subscribe(link, self._video_track)
             self._subscribe(link, TIMING_TRACK)
+
+    def _read_init(self, rendition: object) -> None:
+        """Timescale and trex defaults of the video track's init segment, where given."""
+        try:
+            init = base64.b64decode(rendition["container"]["init"])  # type: ignore[index]
+            defaults, timescales = track_defaults(init), track_timescales(init)
+        except (KeyError, TypeError, ValueError, binascii.Error, struct.error):
+            return
+        self._defaults = defaults
+        timescale = next(iter(timescales.values()), 0)
+        if timescale > 0:
+            self._timescale = timescale
 
 
 def _raise_receive_buffer(link: MoqLink) -> None:

@@ -15,6 +15,15 @@ Loss is counted from the timing records' publish counter ``n`` (the session
 increments it by one per published frame): over the ``n`` range seen in the
 window, every ``n`` whose video frame never arrived (skipped group, reset
 stream, missing timing record in between) is a lost frame.
+
+A publisher without a timing track (moq-rs, FFmpeg, any other MoQ publisher) has
+no server stamps. Then loss is counted on the media clock: over the decode-time
+range seen in the window, at one frame per frame duration, every frame time that
+never arrived is lost. And latency is the media-clock delay: arrival wall time
+minus decode time, less the smallest such difference in the window, so the frame
+that came fastest counts 0 ms and the others show how much later than it they
+came (what a player's jitter buffer must hold; the constant part of the delay,
+publisher to the fastest frame, is not visible without the publisher's clock).
 """
 
 from __future__ import annotations
@@ -49,6 +58,9 @@ class ViewerStats:
     catalog: bool = False  # a catalog naming a video track arrived
     publish_to_receive_ms: list[float] = field(default_factory=list)
     render_end_to_receive_ms: list[float] = field(default_factory=list)
+    # Decode time -> arrival wall clock of video frames in the window (media-clock figures).
+    _media_arrivals_us: dict[int, int] = field(default_factory=dict)
+    _frame_duration_us: int | None = None
     _arrivals_us: dict[int, tuple[int, bool]] = field(default_factory=dict)
     _early_records: dict[int, dict[str, Any]] = field(default_factory=dict)
     _seen_n: set[int] = field(default_factory=set)  # timing records arriving in the window
@@ -57,8 +69,19 @@ class ViewerStats:
     def in_window(self, now_s: float) -> bool:
         return self.window[0] <= now_s < self.window[1]
 
-    def on_video(self, pts_us: int | None, size: int, now_s: float, wall_us: int) -> None:
+    def on_video(
+        self,
+        pts_us: int | None,
+        size: int,
+        now_s: float,
+        wall_us: int,
+        duration_us: int | None = None,
+    ) -> None:
         inside = self.in_window(now_s)
+        if inside and pts_us is not None:
+            self._media_arrivals_us.setdefault(pts_us, wall_us)
+            if duration_us and self._frame_duration_us is None:
+                self._frame_duration_us = duration_us
         self.received_total += 1
         self.bytes_total += size
         if self.first_frame_ms is None and self.connect_started_s is not None:
@@ -112,13 +135,29 @@ class ViewerStats:
     def published(self) -> int:
         """Frames the publisher sent during the window, as far as this viewer can tell."""
         if not self._seen_n:
-            return 0
+            return self._media_expected()
         return max(self._seen_n) - min(self._seen_n) + 1
+
+    def _media_expected(self) -> int:
+        """Frames the media clock says were due in the window's decode-time range."""
+        step = self._frame_duration_us
+        if not self._media_arrivals_us or not step:
+            return 0
+        low, high = min(self._media_arrivals_us), max(self._media_arrivals_us)
+        return round((high - low) / step) + 1
+
+    def media_delay_ms(self) -> list[float]:
+        """Arrival minus decode time, less the smallest in the window (see the module doc)."""
+        if not self._media_arrivals_us:
+            return []
+        offsets = [wall - pts for pts, wall in self._media_arrivals_us.items()]
+        fastest = min(offsets)
+        return [(o - fastest) / 1000.0 for o in offsets]
 
     @property
     def lost(self) -> int:
-        if not self._seen_n:
-            return 0
+        if not self._seen_n:  # no timing track: the media clock
+            return max(0, self._media_expected() - len(self._media_arrivals_us))
         low, high = min(self._seen_n), max(self._seen_n)
         got = sum(1 for n in self._matched_n if low <= n <= high)
         return (high - low + 1) - got
@@ -159,6 +198,7 @@ class ViewerStats:
             "catalog": self.catalog,
             "publish_to_receive_ms": percentiles(self.publish_to_receive_ms),
             "render_end_to_receive_ms": percentiles(self.render_end_to_receive_ms),
+            "media_delay_ms": percentiles(self.media_delay_ms()),
         }
 
 
