@@ -21,3 +21,27 @@ def test_the_two_commands_are_documented_and_ci_runs_the_test_one() -> None:
     assert "./dev up" in README and "./dev test" in README
     assert "./dev test" in (ROOT / ".ci" / "run").read_text()
     assert (ROOT / "dev").stat().st_mode & 0o111
+
+
+def test_the_prerequisites_are_all_named() -> None:
+    """A newcomer's machine needs each of these before ./dev runs; .ci/run installs them."""
+    setup = README[README.index("## The two commands") : README.index("## What is here")]
+    for need in ("Python 3.11", "venv", "Node.js", "npm", "g++", "Chromium"):
+        assert need in setup, need
+    ci = (ROOT / ".ci" / "run").read_text()
+    for package in ("g++", "chromium", "npm"):
+        assert package in ci and package in setup
+
+
+def test_one_url_parameter_names_the_broadcast_and_the_alias_is_said() -> None:
+    """The page takes ?broadcast= (documented) and ?name= (an alias, said so); every
+    URL in the docs uses the documented one."""
+    config = (ROOT / "client_web" / "src" / "config.ts").read_text()
+    assert 'query.get("broadcast") ?? query.get("name")' in config
+    assert "`name` is accepted as an alias" in README
+    docs = [README, (ROOT / "deploy" / "README.md").read_text()]
+    docs.append((ROOT / "docker-compose.yml").read_text())
+    for text in docs:
+        for line in text.splitlines():
+            if "localhost:" in line and "?" in line:
+                assert "?name=" not in line and "&name=" not in line, line
