@@ -11,6 +11,7 @@ from server.moq import events as ev
 from server.moq.errors import ErrorCode
 from server.moq.limits import MoqLimits
 from server.moq.session import MoqSession
+from server.moq.transmit import ResetStream
 from tests.moq_pipe import RelayNet
 
 
@@ -142,6 +143,43 @@ def test_viewer_past_its_max_latency_is_skipped_on_poll() -> None:
     net.pump()
     closed = of(viewer.take_events(), ev.GroupClosed)
     assert closed and closed[0].error_code == ErrorCode.SKIPPED
+
+
+def test_finished_groups_that_went_stale_are_skipped_too() -> None:
+    """Groups shorter than the max latency finish before any of their frames is old:
+    a viewer that stopped reading must still be skipped ahead (its finished groups reset)
+    instead of being handed every stale short group, one after another."""
+    net = RelayNet()
+    publisher = net.connect("pub")
+    publisher.publish("game")
+    net.pump()
+    viewer = net.connect("v")
+    viewer.subscribe("game", "video", max_latency_ms=100)
+    net.pump()
+    request = serve(net, publisher)["video"]
+    net.pipes["v"].hold_to_client = True
+    for sequence in range(5):  # 5 groups of 2 frames, 40 ms apart: each 40 ms long
+        net.now = sequence * 0.04
+        stream = publisher.open_group(request, sequence)
+        assert stream is not None
+        for payload in (b"k%d" % sequence, b"d"):
+            publisher.write_frame(stream, payload)
+            net.pump()  # each frame reaches the viewer's (held) queue on its own
+        publisher.finish_group(stream)
+        net.pump()
+    stats = net.relay.stats("v")
+    assert stats is not None and stats.groups_skipped >= 1  # group 0 was 160 ms old
+    net.now = 0.5
+    net.relay.poll()
+    net.pump()
+    # Every group stream queued for the viewer was reset (after its FIN: the queued
+    # bytes are dropped, not sent), so nothing 500 ms old is left to send.
+    resets = [
+        t.stream_id
+        for t in net.pipes["v"]._held
+        if isinstance(t, ResetStream) and t.error_code == ErrorCode.SKIPPED
+    ]
+    assert len(set(resets)) == stats.groups_skipped == 5
 
 
 def test_garbage_from_one_viewer_closes_only_that_session() -> None:

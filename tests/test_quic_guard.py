@@ -65,7 +65,9 @@ def test_the_aioquic_internals_the_guard_reads_are_there() -> None:
     stream = H3Stream(0)
     for name in ("buffer", "frame_type", "frame_size", "stream_type", "session_id"):
         assert hasattr(stream, name), name
+    # connection.py's _WtH3Connection notes the stream each packet was for through these.
     assert hasattr(H3Connection, "_receive_request_or_push_data")
+    assert hasattr(H3Connection, "_receive_stream_data_uni")
     from aioquic.asyncio.server import QuicServer
 
     assert hasattr(QuicServer, "_connection_terminated")

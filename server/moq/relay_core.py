@@ -15,7 +15,8 @@ Choices (and why):
   than its max latency, gets its current group reset (ErrorCode.SKIPPED) and joins the next
   group at its start: frames inside a group depend on its keyframe, so a group is the
   smallest unit that can be skipped. The backlog counts the current group's stream plus the
-  finished groups of that subscription not yet sent ("tails"): a viewer that never reads
+  finished groups of that subscription not yet sent ("tails"), whose frames also count for
+  the max latency (short groups finish before they are old): a viewer that never reads
   would otherwise take a whole finished group per group, each under the limit, without
   bound. Nothing is buffered without bound. A viewer with no QUIC stream credit left
   (MAX_STREAMS: it stopped reading) misses each group that starts meanwhile the same way.
@@ -131,7 +132,8 @@ class _Viewer:
     max_latency_s: float | None
     accepted: bool = False
     outs: dict[int, _Out] = field(default_factory=dict)  # upstream group stream -> out
-    tails: set[int] = field(default_factory=set)  # finished group streams still unsent
+    # Finished group streams whose bytes are not all delivered yet (stream id -> out).
+    tails: dict[int, _Out] = field(default_factory=dict)
     start: int | None = None  # sequence of the first group it was given
 
 
@@ -227,6 +229,7 @@ class RelayCore:
                 for upstream, out in list(viewer.outs.items()):
                     if self._lagging(viewer, out, now):
                         self._skip(viewer, upstream)
+                self._check_tails(viewer, now)
         return self._take_touched()
 
     def stats(self, conn_id: ConnId) -> ConnStats | None:
@@ -272,7 +275,7 @@ class RelayCore:
         elif isinstance(event, GroupCancelled):
             viewer = self._find_viewer(conn_id, event.request_id)
             if viewer is not None:
-                viewer.tails.discard(event.stream_id)
+                viewer.tails.pop(event.stream_id, None)
                 for upstream, out in list(viewer.outs.items()):
                     if out.stream_id == event.stream_id:
                         del viewer.outs[upstream]
@@ -453,6 +456,7 @@ class RelayCore:
             for upstream, out in list(viewer.outs.items()):
                 if self._lagging(viewer, out, now):
                     self._skip(viewer, upstream)
+            self._check_tails(viewer, now)
             self._open_out(track, viewer, e.stream_id, group)
 
     def _on_frame(self, conn: _Conn, e: FrameReceived) -> None:
@@ -532,22 +536,23 @@ class RelayCore:
         """FIN a viewer's group stream; until its bytes are sent they count as backlog."""
         self._conns[viewer.conn].session.finish_group(out.stream_id)
         if self._buffered_bytes(viewer.conn, out.stream_id) > 0:
-            viewer.tails.add(out.stream_id)
+            viewer.tails[out.stream_id] = out
 
-    def _tail_backlog(self, viewer: _Viewer) -> int:
+    def _tails_lagging(self, viewer: _Viewer, now: float) -> tuple[int, bool]:
+        """(unsent bytes of the finished groups, whether one holds a frame older than
+        the viewer's max latency); forgets the tails that drained."""
         total = 0
-        for stream_id in list(viewer.tails):
+        stale = False
+        for stream_id, tail in list(viewer.tails.items()):
             backlog = self._buffered_bytes(viewer.conn, stream_id)
-            if backlog > 0:
-                total += backlog
-            else:
-                viewer.tails.discard(stream_id)  # drained (or reset by the peer)
-        return total
+            if backlog <= 0:
+                del viewer.tails[stream_id]  # drained (or reset by the peer)
+                continue
+            total += backlog
+            stale = stale or self._too_old(viewer, tail, backlog, now)
+        return total, stale
 
-    def _lagging(self, viewer: _Viewer, out: _Out, now: float) -> bool:
-        backlog = self._buffered_bytes(viewer.conn, out.stream_id)
-        if backlog + self._tail_backlog(viewer) > self.max_backlog_bytes:
-            return True
+    def _too_old(self, viewer: _Viewer, out: _Out, backlog: int, now: float) -> bool:
         # Frames entirely below (written - backlog) have left our queue; forget their marks.
         sent = out.written - backlog
         while out.marks and out.marks[0][0] <= sent:
@@ -556,13 +561,44 @@ class RelayCore:
             return False
         return now - out.marks[0][1] > viewer.max_latency_s
 
+    def _lagging(self, viewer: _Viewer, out: _Out, now: float) -> bool:
+        """Whether the viewer is behind: too many bytes queued for it, or a frame older
+        than its max latency still unsent, in this group or in a finished one. Short
+        groups (a keyframe every few frames) finish before their frames grow old, so the
+        finished groups count as well as the current one."""
+        backlog = self._buffered_bytes(viewer.conn, out.stream_id)
+        tail_backlog, stale_tail = self._tails_lagging(viewer, now)
+        if backlog + tail_backlog > self.max_backlog_bytes:
+            return True
+        return stale_tail or self._too_old(viewer, out, backlog, now)
+
     def _skip(self, viewer: _Viewer, upstream: int) -> None:
         out = viewer.outs.pop(upstream)
         conn = self._conns[viewer.conn]
         conn.session.abort_group(out.stream_id, ErrorCode.SKIPPED)
         conn.stats.groups_skipped += 1
+        self._skip_tails(viewer)
         self._touched.add(viewer.conn)
         # The next GroupOpened gives this viewer a fresh stream from that group's start.
+
+    def _check_tails(self, viewer: _Viewer, now: float) -> None:
+        """Skip a viewer's finished groups when they alone make it lag (between groups,
+        or with a quiet publisher, there is no current group to notice it)."""
+        if not viewer.tails:
+            return
+        backlog, stale = self._tails_lagging(viewer, now)
+        if stale or backlog > self.max_backlog_bytes:
+            self._skip_tails(viewer)
+            self._touched.add(viewer.conn)
+
+    def _skip_tails(self, viewer: _Viewer) -> None:
+        """Reset the finished groups still queued for a viewer that skips ahead: they are
+        older than the group it skipped."""
+        conn = self._conns[viewer.conn]
+        for stream_id in viewer.tails:
+            if conn.session.abort_finished_group(stream_id, ErrorCode.SKIPPED):
+                conn.stats.groups_skipped += 1
+        viewer.tails.clear()
 
     # ------------------------------------------------------------------- helpers
 

@@ -249,6 +249,15 @@ class MoqSession:
         self._send(SendData(stream_id, b"", end_stream=True))
         return True
 
+    def abort_finished_group(self, stream_id: int, error_code: int = ErrorCode.CANCEL) -> bool:
+        """Reset a group stream we already finished (FIN) whose bytes are not all
+        delivered: a group that went stale in the send queue. QUIC allows RESET_STREAM
+        after FIN until everything is acknowledged; the adapter makes it a no-op after."""
+        if self.closed or stream_id in self._out_groups or not self._is_local(stream_id):
+            return False
+        self._send(ResetStream(stream_id, error_code))
+        return True
+
     def abort_group(self, stream_id: int, error_code: int = ErrorCode.CANCEL) -> bool:
         if not self._release_group(stream_id):
             return False

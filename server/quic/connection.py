@@ -79,6 +79,24 @@ class _WtH3Connection(H3Connection):
             stream.session_id = session_id
         return stream_id
 
+    # The guard needs aioquic's record of the stream a packet was for, also when
+    # aioquic dropped it from `_stream` while handling that packet (a peer's
+    # unidirectional stream is dropped as soon as its FIN arrives): both receive paths
+    # are handed that record, so they note it here.
+    received_stream: H3Stream | None = None
+
+    def _receive_request_or_push_data(
+        self, stream: H3Stream, data: bytes, stream_ended: bool
+    ) -> list[H3Event]:
+        self.received_stream = stream
+        return super()._receive_request_or_push_data(stream, data, stream_ended)
+
+    def _receive_stream_data_uni(
+        self, stream: H3Stream, data: bytes, stream_ended: bool
+    ) -> list[H3Event]:
+        self.received_stream = stream
+        return super()._receive_stream_data_uni(stream, data, stream_ended)
+
     def forget_stream(self, stream_id: int) -> None:
         """Drop aioquic's HTTP/3 state of a finished WebTransport stream.
 
@@ -260,10 +278,11 @@ class WtConnection(QuicConnectionProtocol):
             self.connection_lost_all(reason)
         if self._h3 is None or self.guard_tripped is not None:
             return
+        self._h3.received_stream = None
         h3_events = self._h3.handle_event(event)
         if self.guard is not None and isinstance(event, StreamDataReceived):
             violation = self.guard.after_stream_data(
-                self._h3._stream.get(event.stream_id),
+                self._h3.received_stream,
                 event.stream_id,
                 len(event.data),
                 self.sessions,

@@ -175,8 +175,8 @@ class ConnectionGuard:
         now: float,
     ) -> Violation | None:
         """Check one StreamDataReceived of `size` bytes once aioquic's HTTP/3 layer has
-        handled it. `stream` is aioquic's record of the stream (None when it already
-        forgot it); `sessions`: the ids (CONNECT stream ids) of the accepted sessions."""
+        handled it. `stream` is aioquic's record of the stream (None when aioquic ignored
+        the data); `sessions`: the ids (CONNECT stream ids) of the accepted sessions."""
         if stream is not None and _is_webtransport(stream) and stream.session_id in sessions:
             return None  # payload: the session's own ingress limit applies
         if stream_id not in self._overhead_streams:
