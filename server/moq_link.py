@@ -65,6 +65,8 @@ class MoqLink:
         self.on_events = on_events
         self.on_closed_callback = on_closed
         self.closed_reason: str | None = None
+        # The code of the close this side sent (None: the peer closed, or still open).
+        self.local_close_code: int | None = None
         self._closed = asyncio.Event()
         self._after_input = after_input or MoqLink.pump
         self._ingress = ingress
@@ -137,6 +139,8 @@ class MoqLink:
                     warnings_log.warning(*line)
                 else:
                     log.log(level, *line)
+                if self.local_close_code is None:
+                    self.local_close_code = t.error_code
                 self.wt.close(t.error_code, t.reason)
 
     def close(self, code: int = 0, reason: str = "") -> None:

@@ -30,6 +30,7 @@ from prometheus_client.process_collector import ProcessCollector
 
 from server.auth import Authorizer, Grant
 from server.monitor import FrameRateMonitor
+from server.moq.errors import ErrorCode
 from server.moq.limits import IngressLimits, MoqLimits, TokenBucket
 from server.moq.relay_core import ConnId, ConnStats, RelayCore
 from server.moq_link import MoqLink
@@ -78,6 +79,14 @@ def refusal_label(refusal: Refusal) -> str:
     return "invalid_token"
 
 
+def close_label(code: int) -> str:
+    """A Prometheus label for a moq-lite close code: its name, few values."""
+    try:
+        return ErrorCode(code).name.lower()
+    except ValueError:
+        return "other"
+
+
 class RelayMetrics:
     def __init__(self, registry: CollectorRegistry) -> None:
         self.connections = Gauge("upcast_relay_connections", "Open sessions", registry=registry)
@@ -89,6 +98,14 @@ class RelayMetrics:
             "upcast_relay_sessions_unauthorized",
             "Sessions refused or closed for lack of rights (missing/invalid token, a"
             " publish outside the token's put)",
+            ["reason"],
+            registry=registry,
+        )
+        self.sessions_closed = Counter(
+            "upcast_relay_sessions_closed",
+            "Sessions the relay closed for what the peer sent: a moq-lite protocol"
+            " violation, a limit (upload rate, message or frame size, streams,"
+            " subscriptions), a publish outside the token",
             ["reason"],
             registry=registry,
         )
@@ -272,6 +289,8 @@ class Relay:
             return
         stats = self.core.stats(conn_id)
         log.info("relay: session %d from %s closed (%s); %s", conn_id, link.remote, reason, stats)
+        if link.local_close_code:
+            self.metrics.sessions_closed.labels(close_label(link.local_close_code)).inc()
         self.metrics.connections.set(len(self.links))
         self._flush(self.core.remove_connection(conn_id))
         self._count(conn_id)  # its last frames since the previous update

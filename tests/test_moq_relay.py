@@ -182,6 +182,31 @@ def test_finished_groups_that_went_stale_are_skipped_too() -> None:
     assert len(set(resets)) == stats.groups_skipped == 5
 
 
+def test_one_session_holds_at_most_two_subscriptions_of_a_track() -> None:
+    """A session that subscribes to the same track again and again is refused past two
+    (a re-subscribe may overlap the old one): each would be one more copy of every frame."""
+    net = RelayNet()
+    publisher = net.connect("pub")
+    publisher.publish("game")
+    net.pump()
+    viewer = net.connect("v")
+    first = viewer.subscribe("game", "video")
+    net.pump()
+    request = serve(net, publisher)["video"]
+    ids = [first] + [viewer.subscribe("game", "video") for _ in range(5)]
+    net.pump()
+    refused = {e.subscription_id for e in of(viewer.take_events(), ev.SubscribeClosed)}
+    assert refused == set(ids[2:])
+    stream = send_group(publisher, request, 0, [b"k"])
+    publisher.finish_group(stream)
+    net.pump()
+    assert len(of(viewer.take_events(), ev.FrameReceived)) == 2
+    other = net.connect("w")  # another session is not affected
+    other.subscribe("game", "video")
+    net.pump()
+    assert net.relay.viewer_count("game", "video") == 3
+
+
 def test_garbage_from_one_viewer_closes_only_that_session() -> None:
     net, publisher, (_, good), request = setup(2)
     net.pipes["v0"].server.receive(0 + 4 * 50, b"\x09garbage", False)

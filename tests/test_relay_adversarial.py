@@ -58,6 +58,7 @@ KEEP_FRACTION = 0.8
 CLOSE_WITHIN_S = 1.0
 # Tighter than the defaults so that a test waits a second, not five.
 TEST_GUARD = GuardLimits(connect_deadline_s=1.0)
+H3_PARSE_ERRORS = {0x105, 0x106}  # H3_FRAME_UNEXPECTED, H3_FRAME_ERROR
 JWT_SHAPED = re.compile(r"eyJ[A-Za-z0-9_-]{4,}\.[A-Za-z0-9_-]{4,}")
 
 
@@ -303,6 +304,11 @@ def test_random_oversized_frame_length_is_refused(cert: CertBundle, kind: str, l
     outcome = holder[0]
     assert_common(outcome)
     assert outcome.result.open_at_end == 0, f"{kind} of length {length} was never closed"
+    if kind.startswith("unknown") and set(outcome.result.close_codes) & H3_PARSE_ERRORS:
+        # An unknown frame is discarded, whatever its length; once it ends, the zeros
+        # that follow are DATA frames before any HEADERS (or on the control stream),
+        # which aioquic's HTTP/3 layer refuses itself before a byte limit is reached.
+        return
     outcome.assert_counted(*guard)
 
 
@@ -388,11 +394,6 @@ PROTOCOL_CLOSES = Expectation(
 )
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="needs a counter of sessions the relay closed for a moq-lite error, e.g."
-    " upcast_relay_sessions_closed_total{reason=protocol_violation|limit_exceeded}",
-)
 def test_moq_protocol_error_closes_are_counted(cert: CertBundle) -> None:
     outcome = scenario_test(cert, "moq_string_length", expects=(PROTOCOL_CLOSES,))
     outcome.assert_counted(PROTOCOL_CLOSES)
@@ -411,7 +412,10 @@ def test_protocol_error_closes_are_logged_at_a_bounded_rate(
             *(send_garbage(ctx, "wt_bidi", b"\x09garbage") for _ in range(40))
         )
         result.connections = len(conns)
-        await asyncio.sleep(0.5)
+        # aioquic reports a peer's CONNECTION_CLOSE after its draining period (3 PTO).
+        deadline = time.monotonic() + 5.0
+        while time.monotonic() < deadline and not all(c.is_closed for c in conns):
+            await asyncio.sleep(0.05)
         for conn in conns:
             result.record_close(conn, first=False)
             conn.vanish()

@@ -157,11 +157,15 @@ class RelayCore:
         max_backlog_bytes: int = 2 * 1024 * 1024,
         default_max_latency_s: float | None = None,
         max_group_cache_bytes: int = 32 * 1024 * 1024,
+        max_subscriptions_per_track: int = 2,
         on_frame: Callable[[TrackKey, int, float], None] | None = None,
         on_denied: DeniedHook | None = None,
     ) -> None:
         """``on_frame(track, payload bytes, seconds spent fanning it out)`` is called for
-        every frame a publisher delivers: the relay's monitor and metrics."""
+        every frame a publisher delivers: the relay's monitor and metrics.
+        ``max_subscriptions_per_track``: concurrent subscriptions of one connection to
+        one track (two lets a player overlap a re-subscribe); without it one session
+        could make the relay send it every frame hundreds of times."""
         self._buffered_bytes = buffered_bytes
         self._on_denied = on_denied
         self._on_frame_hook = on_frame
@@ -169,6 +173,7 @@ class RelayCore:
         self.max_backlog_bytes = max_backlog_bytes
         self.default_max_latency_s = default_max_latency_s
         self.max_group_cache_bytes = max_group_cache_bytes
+        self.max_subscriptions_per_track = max_subscriptions_per_track
         self._conns: dict[ConnId, _Conn] = {}
         self._owners: dict[str, ConnId] = {}  # broadcast path -> publishing connection
         self._hops: dict[str, int] = {}
@@ -353,6 +358,11 @@ class RelayCore:
             return
         key = (e.broadcast, e.track)
         track = self._tracks.get(key)
+        if track is not None:
+            held = sum(1 for viewer_conn, _ in track.viewers if viewer_conn == conn_id)
+            if held >= self.max_subscriptions_per_track:
+                conn.session.reject_subscribe(e.request_id, ErrorCode.LIMIT_EXCEEDED)
+                return
         if track is None:
             publisher = self._conns[owner]
             subscription_id = publisher.session.subscribe(e.broadcast, e.track, priority=e.priority)
