@@ -153,9 +153,11 @@ def _ms(p: dict[str, float | int], key: str) -> str:
 
 def table(result: LoadResult) -> str:
     cfg = result.config
+    # "dly": the media-clock delay of a publisher without a timing track (summary line).
+    kind = "pub" if _latency_name(summary(result)) == "publish->receive" else "dly"
     head = (
         f"{'viewer':>8} {'fps':>6} {'frames':>7} {'lost':>5} {'Mbit/s':>7}"
-        f" {'pub p50':>7} {'pub p95':>7} {'pub p99':>7} {'rend p95':>8}  held"
+        f" {kind + ' p50':>7} {kind + ' p95':>7} {kind + ' p99':>7} {'rend p95':>8}  held"
     )
     lines = [head, "-" * len(head)]
     for s in result.stats[:TABLE_ROWS]:
