@@ -121,10 +121,7 @@ async def flood(
             await conns[-1].until_closed(CLOSE_WAIT_S)
             result.record_close(conns[-1], first=len(conns) == 1)
     finally:
-        result.open_at_end = sum(1 for c in conns if not c.is_closed)
-        for c in conns:
-            c.vanish()
-        result.ended = time.monotonic()
+        result.finish(conns)
     return result
 
 
@@ -218,10 +215,7 @@ async def garbage_streams(ctx: AttackContext, duration_s: float) -> AttackResult
         for conn in conns:
             result.record_close(conn, first=False)
     finally:
-        result.open_at_end = sum(1 for c in conns if not c.is_closed)
-        for c in conns:
-            c.vanish()
-        result.ended = time.monotonic()
+        result.finish(conns)
     return result
 
 
@@ -254,10 +248,7 @@ async def qpack_string_length(ctx: AttackContext, duration_s: float) -> AttackRe
             result.record_close(conn, first=first)
             await asyncio.sleep(0.1)
     finally:
-        result.open_at_end = sum(1 for c in conns if not c.is_closed)
-        for c in conns:
-            c.vanish()
-        result.ended = time.monotonic()
+        result.finish(conns)
     return result
 
 

@@ -61,10 +61,7 @@ async def _each_session(
                 result.session_closes.append(session.close_code)
             await asyncio.sleep(pause_s)
     finally:
-        result.open_at_end = sum(1 for c in conns if not c.is_closed)
-        for c in conns:
-            c.vanish()
-        result.ended = time.monotonic()
+        result.finish(conns)
     return result
 
 

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import time
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass, field
 
 from server.auth.keys import AuthKey
@@ -67,6 +67,14 @@ class AttackResult:
     def time_at_bytes(self, count: int) -> float | None:
         """When the first connection had sent ``count`` bytes (None: it never did)."""
         return next((t for t, n in self.sent_log if n >= count), None)
+
+    def finish(self, conns: Sequence[AttackConnection]) -> None:
+        """The attack is over: note which connections the relay left open, then drop them
+        all without a word (a vanished client costs the relay its idle timeout at most)."""
+        self.open_at_end = sum(1 for c in conns if not c.is_closed)
+        for conn in conns:
+            conn.vanish()
+        self.ended = time.monotonic()
 
     def record_close(self, conn: AttackConnection, *, first: bool) -> None:
         if conn.closed is not None and conn.closed.by_peer:
