@@ -98,8 +98,10 @@ class GuardLimits:
     load test runs its viewers from one)."""
     max_unauthenticated_connections: int = 512
     """Live connections, from all sources, that have no accepted CONNECT yet."""
-    new_connections_per_s_per_source: float = 50.0
-    new_connections_burst_per_source: float = 100.0
+    new_connections_per_s_per_source: float = 20.0
+    """Each costs a TLS handshake (a few ms of CPU): a storm from one address must not
+    take the relay's core from the viewers. A load test ramps at up to this rate."""
+    new_connections_burst_per_source: float = 40.0
     max_tracked_sources: int = 65536
     """Sources whose connection rate is remembered (oldest forgotten first)."""
 
