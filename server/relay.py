@@ -124,6 +124,11 @@ class RelayMetrics:
         self.skipped = Counter(
             "upcast_relay_groups_skipped", "Groups a slow viewer skipped", registry=registry
         )
+        self.subscribes_refused = Counter(
+            "upcast_relay_subscribes_refused",
+            "Subscribes refused because the session already holds two of that track",
+            registry=registry,
+        )
         self.viewers = Gauge(
             "upcast_relay_viewers",
             "Subscribers per track",
@@ -183,7 +188,7 @@ class Relay:
         # record, so a session's last frames still count after the core dropped it) and
         # the totals already added to the Prometheus counters.
         self._conn_stats: dict[int, ConnStats] = {}
-        self._counted: dict[int, tuple[int, int, int, int]] = {}
+        self._counted: dict[int, tuple[int, int, int, int, int]] = {}
         self.started = time.monotonic()
 
     @property
@@ -360,10 +365,10 @@ class Relay:
         s = self._conn_stats.get(conn_id)
         if s is None:
             return
-        now = (s.frames_in, s.frames_out, s.bytes_out, s.groups_skipped)
-        before = self._counted.get(conn_id, (0, 0, 0, 0))
+        now = (s.frames_in, s.frames_out, s.bytes_out, s.groups_skipped, s.subscribes_refused)
+        before = self._counted.get(conn_id, (0, 0, 0, 0, 0))
         m = self.metrics
-        counters = (m.frames_in, m.frames_out, m.bytes_out, m.skipped)
+        counters = (m.frames_in, m.frames_out, m.bytes_out, m.skipped, m.subscribes_refused)
         for counter, value, counted in zip(counters, now, before, strict=True):
             if value > counted:
                 counter.inc(value - counted)

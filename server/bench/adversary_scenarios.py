@@ -89,6 +89,7 @@ _LIST = [
         "many_subscriptions",
         sessions.many_subscriptions,
         "3000 subscriptions in one session",
+        (Expectation("upcast_relay_subscribes_refused_total"),),
     ),
     Scenario(
         "many_request_streams",

@@ -94,6 +94,7 @@ class ConnStats:
     frames_out: int = 0
     bytes_out: int = 0
     groups_skipped: int = 0
+    subscribes_refused: int = 0  # over max_subscriptions_per_track
 
 
 @dataclass(slots=True)
@@ -361,6 +362,7 @@ class RelayCore:
         if track is not None:
             held = sum(1 for viewer_conn, _ in track.viewers if viewer_conn == conn_id)
             if held >= self.max_subscriptions_per_track:
+                conn.stats.subscribes_refused += 1
                 conn.session.reject_subscribe(e.request_id, ErrorCode.LIMIT_EXCEEDED)
                 return
         if track is None:
