@@ -114,25 +114,31 @@ class FrameLog:
                 record = json.loads(line)
                 self.points.append((float(record["t"]), [int(n) for n in record["frames"]]))
 
-    def _at(self, t: float) -> list[int] | None:
+    def _at(self, t: float) -> tuple[float, list[int]] | None:
+        """The last report at or before `t` (its own time and counts)."""
         found = None
-        for at, frames in self.points:
-            if at > t:
+        for point in self.points:
+            if point[0] > t:
                 break
-            found = frames
+            found = point
         return found
 
     def min_fps(self, start: float, end: float) -> float | None:
-        """Lowest frames-per-second of any viewer over 1 s windows in [start, end)."""
+        """Lowest frames-per-second of any viewer over 1 s windows in [start, end).
+
+        Each window's count is divided by the time between the two reports it spans:
+        reports come every 0.25 s, late when the viewers' loop is busy, so a fixed 1 s
+        divisor would read a 0.77 s span as 23 fps with no frame missing."""
         lowest: float | None = None
         t = start
         while t + 1.0 <= end + 1e-6:
             a, b = self._at(t), self._at(t + 1.0)
-            if a is not None and b is not None:
-                worst = min(y - x for x, y in zip(a, b, strict=True))
+            if a is not None and b is not None and b[0] - a[0] >= 0.5:
+                span = b[0] - a[0]
+                worst = min(y - x for x, y in zip(a[1], b[1], strict=True)) / span
                 lowest = worst if lowest is None else min(lowest, worst)
             t += 1.0
-        return None if lowest is None else float(lowest)
+        return None if lowest is None else round(lowest, 1)
 
 
 # -- one phase: relay + publisher + viewers, then the scenarios ---------------------------
