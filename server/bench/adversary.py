@@ -34,6 +34,7 @@ from server.relay_process import RelayProcess
 
 from .adversary_client import Target
 from .adversary_scenarios import SCENARIOS
+from .adversary_sessions import connect_storm
 from .adversary_types import AttackContext, Expectation, Scenario
 from .report import BenchReport
 
@@ -43,6 +44,7 @@ SIZE = "640x360"
 FPS_KEEP = 0.95
 RSS_SLACK_MB = 10.0
 VIEWERS_UP_S = 30.0
+WARMUP_S = 3.0
 CLK_TCK = os.sysconf("SC_CLK_TCK")
 
 
@@ -188,6 +190,13 @@ async def run_phase(
             await asyncio.sleep(0.25)
         progress(f"relay pid {pid} port {endpoint.port}; publisher and viewers up")
         ctx = AttackContext(Target(HOST, endpoint.port, endpoint.cert_sha256), auth_key=key)
+        # A relay's first few hundred sessions raise its RSS to a working level it keeps
+        # (allocator arenas, first-use code paths): without a warm-up the first scenario
+        # would be charged for it, whatever it is.
+        progress(f"warm-up: {WARMUP_S:g} s of session churn (connect, subscribe, close)")
+        await connect_storm(ctx, WARMUP_S)
+        await asyncio.sleep(2.0)
+        progress(f"warm-up done: relay RSS {rss_mb(pid):.1f} MB")
         for scenario in scenarios:
             case = await measure(scenario, ctx, pid, endpoint.port, frames, args)
             rss = case["relay_rss_mb"]
@@ -300,6 +309,7 @@ async def _main(args: argparse.Namespace, scenarios: list[Scenario]) -> BenchRep
             "before_s": args.before_s,
             "attack_s": args.attack_s,
             "after_s": args.after_s,
+            "warmup_s": WARMUP_S,
             "scenarios": [s.name for s in scenarios],
             "attacker_source": "127.0.0.2",
             "relay": f"upcast relay on {HOST}, its own process",
