@@ -9,7 +9,7 @@ import sys
 from collections.abc import Callable, Sequence
 
 from server.commands.help_format import DefaultsHelpFormatter
-from server.logging_setup import (
+from server.ops.logging_setup import (
     ENV_VAR,
     LOG_FORMATS,
     configure_logging,

@@ -8,12 +8,12 @@ from __future__ import annotations
 from pydantic import BaseModel
 from pydantic_core import PydanticUndefined
 
-from server.relay_settings import RelaySettings
+from server.relay.settings import RelaySettings
 from server.serve.config import SessionOverride
 from server.session.session_control import SessionControl
-from server.stack import SessionConfig
+from server.stack.local import SessionConfig
 from server.stream_config import StreamConfig
-from server.worker import WorkerConfig
+from server.worker.upscale import WorkerConfig
 
 DOCUMENTED: tuple[tuple[str, type[BaseModel]], ...] = (
     ("upcast up / serve, the game session (SessionConfig)", SessionConfig),

@@ -9,7 +9,7 @@ from typing import Annotated
 
 from pydantic import AfterValidator
 
-from server.frame import Size
+from server.frames.frame import Size
 from upscalers import framegen, registry
 from upscalers.cache import policies
 

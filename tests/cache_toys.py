@@ -15,7 +15,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from server.frame import Camera, FrameFlags, FrameMeta, RenderFrame, Size
+from server.frames.frame import Camera, FrameFlags, FrameMeta, RenderFrame, Size
 
 IN_CHANNELS = 9  # colour 3, depth 1, motion 2, warped previous output 3
 TOY_SIZE = Size(32, 24)

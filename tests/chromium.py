@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from server.browser_paths import CHROMIUM
+from server.ops.browser_paths import CHROMIUM
 
 
 def browser_marks(page: Path) -> list[pytest.MarkDecorator]:

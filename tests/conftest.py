@@ -8,7 +8,7 @@ from typing import Any
 
 import pytest
 
-from server.browser_paths import CHROMIUM, CHROMIUM_ARGS
+from server.ops.browser_paths import CHROMIUM, CHROMIUM_ARGS
 
 
 @pytest.fixture

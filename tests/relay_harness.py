@@ -23,10 +23,10 @@ from server.auth import Authorizer
 from server.moq import events as ev
 from server.moq.errors import ErrorCode
 from server.moq.events import Event
-from server.moq_link import MoqLink, connect_moq
 from server.quic.certs import CertBundle
 from server.quic.client import WtClientConnection
-from server.relay import Relay, RelayConfig
+from server.quic.moq_link import MoqLink, connect_moq
+from server.relay.relay import Relay, RelayConfig
 
 HEADER = struct.Struct(">IIId")  # group, index in group, frame number, send time (monotonic)
 

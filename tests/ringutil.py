@@ -6,7 +6,7 @@ import zlib
 
 import numpy as np
 
-from server.ring import ReadLease, WriteLease
+from server.frames.ring import ReadLease, WriteLease
 
 
 def fill_frame(lease: WriteLease, seq_hint: int, width: int, height: int) -> int:
@@ -39,7 +39,7 @@ def child_hold_read_then_hang(name: str, held: object) -> None:
     """Attach as consumer, take a frame, say so, then hang until killed."""
     import time
 
-    from server.ring import FrameRing
+    from server.frames.ring import FrameRing
 
     ring = FrameRing.attach(name)
     ring.attach_as_consumer()
@@ -53,7 +53,7 @@ def child_write_half_then_hang(name: str, held: object, width: int, height: int)
     """Attach as producer, write half a frame, say so, then hang until killed."""
     import time
 
-    from server.ring import FrameRing
+    from server.frames.ring import FrameRing
 
     ring = FrameRing.attach(name)
     ring.attach_as_producer()
@@ -70,7 +70,7 @@ def child_produce(name: str, count: int, width: int, height: int, period_s: floa
     """Produce ``count`` checksummed frames at a steady period."""
     import time
 
-    from server.ring import FrameRing
+    from server.frames.ring import FrameRing
 
     ring = FrameRing.attach(name)
     ring.attach_as_producer()

@@ -17,8 +17,8 @@ from typing import Any
 
 from server.auth import AuthKey, generate_key, load_key
 from server.auth.minting import session_tokens
-from server.moq_link import with_token
-from server.process import stop_child
+from server.ops.process import stop_child
+from server.quic.moq_link import with_token
 
 ROOT = Path(__file__).resolve().parents[1]
 # 160x90 -> 320x180 at 15 fps: small enough for 4 sessions on a 2-core CI machine.

@@ -6,7 +6,7 @@ import pytest
 import torch
 from torch import nn
 
-from server.frame import FrameFlags, RenderFrame, Size
+from server.frames.frame import FrameFlags, RenderFrame, Size
 from tests.cache_toys import ToyNested, ToyNeuralUpscaler, ToyUNet, display_of, make_frame
 from upscalers.cache.cached_upscaler import CachedUpscaler
 from upscalers.cache.layer_cache import CachedBranch
@@ -274,7 +274,7 @@ def test_the_frame_delta_reference_is_a_copy_of_the_refresh_colour() -> None:
 
 
 def test_unet_cached_from_the_registry_skips_work_on_a_still_scene() -> None:
-    from server.render.renderer import Renderer, RenderTargets
+    from server.game.render.renderer import Renderer, RenderTargets
     from upscalers import registry
 
     size = Size(96, 54)
@@ -293,7 +293,7 @@ def test_unet_cached_from_the_registry_skips_work_on_a_still_scene() -> None:
 
 
 def test_the_host_sets_a_cache_policy_at_run_time_and_keeps_it_across_switches() -> None:
-    from server.render.renderer import Renderer, RenderTargets
+    from server.game.render.renderer import Renderer, RenderTargets
     from upscalers.cache.policies.schedule import EveryNPolicy
     from upscalers.host import UpscalerHost
 

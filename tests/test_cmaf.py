@@ -1,4 +1,4 @@
-"""fMP4 box writing and reading (server/cmaf.py), without an encoder."""
+"""fMP4 box writing and reading (server/media/cmaf.py), without an encoder."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import struct
 
 import pytest
 
-from server.cmaf import (
+from server.media.cmaf import (
     MOOF_SIZE,
     NON_SYNC_SAMPLE_FLAGS,
     SYNC_SAMPLE_FLAGS,
@@ -18,7 +18,7 @@ from server.cmaf import (
     media_fragment,
     split_annexb,
 )
-from server.cmaf_read import parse_fragment
+from server.media.cmaf_read import parse_fragment
 
 # A real x264 global header: constrained baseline (0x42, 0xc0), level 3.1 (0x1f).
 SPS = bytes.fromhex("6742c01fda0280bfe59a808080a0000003002000000f11e30654")

@@ -1,4 +1,4 @@
-"""Reading fragments of any muxer (server/cmaf_read.py): FFmpeg's own fragmented MP4
+"""Reading fragments of any muxer (server/media/cmaf_read.py): FFmpeg's own fragmented MP4
 through PyAV with several movflags sets (defaults in tfhd, explicit base offsets,
 composition offsets, signed ones in trun v1, several samples per trun, an audio traf
 beside the video one), moq-rs's trun layout, the spec's corner cases, and damaged
@@ -15,8 +15,8 @@ import av
 import numpy as np
 import pytest
 
-from server.cmaf import box, full_box, iter_boxes, media_fragment
-from server.cmaf_read import FragmentInfo, TrackDefaults, parse_fragment, track_defaults
+from server.media.cmaf import box, full_box, iter_boxes, media_fragment
+from server.media.cmaf_read import FragmentInfo, TrackDefaults, parse_fragment, track_defaults
 
 W, H = 64, 48
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from server.frame import Size
+from server.frames.frame import Size
 from tests.test_fsr1 import make_frame
 from upscalers import registry
 from upscalers.fsr1 import EasuRcasUpscaler

@@ -15,12 +15,12 @@ from pathlib import Path
 
 import pytest
 
-from server.control import ControlServer, SetCachePolicy, SetUpscaler, parse_message
 from server.moq import events as ev
 from server.serve.control_client import request_control
 from server.serve.control_schema import DEFAULT_PATH, render
 from server.session.input_router import InputRouter
 from server.session.session_control import ControlResult, StatusRecord
+from server.worker.control import ControlServer, SetCachePolicy, SetUpscaler, parse_message
 from tests.moq_pipe import Pipe
 from tests.serve_harness import ROOT, SMALL, serve
 from tests.test_session_broadcast import Harness

@@ -345,7 +345,7 @@ def test_the_relay_serves_the_web_client_its_image_builds() -> None:
 def test_relay_health_check_path_answers_200(tmp_path: Path) -> None:
     from server.quic.certs import generate_cert
     from server.quic.http_fetch import fetch_cert_hash
-    from server.relay import Relay, RelayConfig
+    from server.relay.relay import Relay, RelayConfig
 
     url = urllib.parse.urlsplit(services(COMPOSE)["relay"]["healthcheck"]["test"][-1])
     assert url.path == "/certificate.sha256"
@@ -439,15 +439,15 @@ def exported_sample_names(registry: CollectorRegistry) -> set[str]:
 
 
 def every_process_metric(tmp_path: Path, ring_name: str) -> set[str]:
-    from server.frame import Size
-    from server.game import GameLoop
-    from server.metrics_process import game_registry, worker_registry
-    from server.monitor import MonitorMetrics
+    from server.frames.frame import Size
+    from server.frames.monitor import MonitorMetrics
+    from server.frames.ring_frames import create_display_ring, create_render_ring
+    from server.game.loop import GameLoop
+    from server.game.render.renderer import Renderer
+    from server.ops.metrics import game_registry, worker_registry
     from server.quic.certs import generate_cert
-    from server.relay import Relay, RelayConfig
-    from server.render.renderer import Renderer
-    from server.ring_frames import create_display_ring, create_render_ring
-    from server.worker import UpscaleWorker
+    from server.relay.relay import Relay, RelayConfig
+    from server.worker.upscale import UpscaleWorker
     from upscalers.host import UpscalerHost
 
     relay = Relay(RelayConfig(host="127.0.0.1", port=0), generate_cert(directory=tmp_path))

@@ -10,8 +10,8 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
-from server.cmaf_read import parse_fragment
-from server.encode import EncodedFrame, EncoderConfig, VideoEncoder, default_bitrate
+from server.media.cmaf_read import parse_fragment
+from server.media.encode import EncodedFrame, EncoderConfig, VideoEncoder, default_bitrate
 
 W, H, FPS = 320, 180, 30.0
 FRAME_US = round(1e6 / FPS)

@@ -14,9 +14,9 @@ from typing import Any
 import numpy as np
 import pytest
 
-from server.catalog import catalog_for, video_catalog
-from server.cmaf import iter_boxes
-from server.encode import EncoderConfig, VideoEncoder
+from server.media.catalog import catalog_for, video_catalog
+from server.media.cmaf import iter_boxes
+from server.media.encode import EncoderConfig, VideoEncoder
 
 # Field -> JSON type, from moq-hang-0.3.5/package/catalog/video.js (VideoConfigSchema):
 # u53 fields are non-negative integers, framerate a number, optimizeForLatency a boolean.

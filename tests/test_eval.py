@@ -11,8 +11,8 @@ import pytest
 from server.cli import main
 from server.eval.methods import compiled_variants, eager_torch_variants, parse_method
 from server.eval.upscalers import _frames_per_method, must_show_checks
-from server.frame import RenderFrame, Size
-from server.render.mip_bias import parse_mip_bias
+from server.frames.frame import RenderFrame, Size
+from server.game.render.mip_bias import parse_mip_bias
 from upscalers import metrics
 
 

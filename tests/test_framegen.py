@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import torch
 
-from server.frame import Camera, FrameFlags, FrameMeta, RenderFrame, Size
-from server.render.camera import CameraInput
-from server.render.renderer import Renderer
-from server.render.transforms import perspective, rigid, rotation_y
+from server.frames.frame import Camera, FrameFlags, FrameMeta, RenderFrame, Size
+from server.game.render.camera import CameraInput
+from server.game.render.renderer import Renderer
+from server.game.render.transforms import perspective, rigid, rotation_y
 from upscalers import metrics
 from upscalers.framegen import (
     PREDICTORS,

@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 import torch
 
-from server.frame import RenderFrame, Size
-from server.render.renderer import Renderer
+from server.frames.frame import RenderFrame, Size
+from server.game.render.renderer import Renderer
 from upscalers import metrics
 from upscalers.framegen import MeshProjectionPredictor, MpeOptions, Prediction
 from upscalers.framegen.mpe_cpu import warm_up

@@ -13,7 +13,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from server.frame import Camera, FrameMeta, RenderFrame, Size
+from server.frames.frame import Camera, FrameMeta, RenderFrame, Size
 from upscalers.base import Upscaler
 from upscalers.fsr1 import EasuRcasUpscaler, EasuUpscaler
 from upscalers.fsr1_easu import Easu

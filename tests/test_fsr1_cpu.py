@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from server.eval.upscalers import _render_frames
-from server.frame import Size
+from server.frames.frame import Size
 from tests.test_fsr1 import make_frame, random_color
 from upscalers.fsr1 import EasuRcasUpscaler, EasuUpscaler
 from upscalers.output import to_uint8

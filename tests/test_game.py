@@ -6,12 +6,12 @@ import threading
 
 import numpy as np
 
-from server.frame import FrameFlags, Size
-from server.game import GameLoop
-from server.render.camera import CameraInput
-from server.render.renderer import Renderer
-from server.ring_frames import create_render_ring, render_frame_of
-from server.timing import Stage
+from server.frames.frame import FrameFlags, Size
+from server.frames.ring_frames import create_render_ring, render_frame_of
+from server.frames.timing import Stage
+from server.game.loop import GameLoop
+from server.game.render.camera import CameraInput
+from server.game.render.renderer import Renderer
 
 SIZE = Size(96, 54)
 

@@ -12,16 +12,16 @@ import pytest
 from pydantic import ValidationError
 
 from server.cli import build_parser
-from server.frame import FrameFlags, RenderFrame, Size
-from server.game import GameLoop
-from server.game_input import InputMessage, InputReceiver, send_input
-from server.metrics_process import game_registry
-from server.render.camera import CameraInput
-from server.render.renderer import Renderer, RenderTargets
-from server.render.scenes import CUT_TIME
-from server.ring import FrameRing
-from server.ring_frames import create_render_ring, render_frame_of
-from server.timing import Stage
+from server.frames.frame import FrameFlags, RenderFrame, Size
+from server.frames.ring import FrameRing
+from server.frames.ring_frames import create_render_ring, render_frame_of
+from server.frames.timing import Stage
+from server.game.input import InputMessage, InputReceiver, send_input
+from server.game.loop import GameLoop
+from server.game.render.camera import CameraInput
+from server.game.render.renderer import Renderer, RenderTargets
+from server.game.render.scenes import CUT_TIME
+from server.ops.metrics import game_registry
 
 SIZE = Size(96, 54)
 F32 = np.float32

@@ -9,8 +9,8 @@ from pathlib import Path
 import pytest
 from pydantic import ValidationError
 
-from server.game_input import InputMessage, InputReceiver, send_input
-from server.render.camera import CameraInput
+from server.game.input import InputMessage, InputReceiver, send_input
+from server.game.render.camera import CameraInput
 
 
 def _wait(pred: object, timeout: float = 3.0) -> None:

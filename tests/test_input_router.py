@@ -6,10 +6,10 @@ import asyncio
 import time
 from pathlib import Path
 
-from server.control import ControlServer, SetUpscaler, parse_message
-from server.game_input import InputReceiver
-from server.render.camera import CameraInput
+from server.game.input import InputReceiver
+from server.game.render.camera import CameraInput
 from server.session.input_router import InputRouter
+from server.worker.control import ControlServer, SetUpscaler, parse_message
 
 
 def _wait(pred: object, timeout: float = 3.0) -> None:

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from server.frame import Size
+from server.frames.frame import Size
 from upscalers import kernel_readiness
 from upscalers.framegen.mpe import MeshProjectionPredictor
 from upscalers.fsr1 import EasuRcasUpscaler, EasuUpscaler

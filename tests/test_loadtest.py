@@ -19,7 +19,7 @@ from typing import Any
 import pytest
 
 from server.cli import main
-from server.frame import Size
+from server.frames.frame import Size
 from server.loadtest.findmax import FindMaxResult, find_max, ladder
 from server.loadtest.plan import LoadConfig, make_plan, parse_relay_url
 from server.loadtest.relay_probe import parse_cpu_seconds
@@ -28,7 +28,7 @@ from server.loadtest.run import LoadResult, LoadTestError, run_load
 from server.loadtest.synthetic import FrameSource, SyntheticPublisher, SyntheticSettings
 from server.loadtest.viewer_stats import ViewerStats
 from server.quic.certs import CertBundle, generate_cert
-from server.relay import Relay, RelayConfig
+from server.relay.relay import Relay, RelayConfig
 
 SMALL = Size(320, 180)
 
@@ -155,7 +155,7 @@ def test_no_broadcast_is_a_clear_error(cert: CertBundle) -> None:
 
 
 def test_loop_source_restamps_fragments() -> None:
-    from server.cmaf_read import parse_fragment
+    from server.media.cmaf_read import parse_fragment
 
     source = FrameSource(SyntheticSettings("http://x/", SMALL, 30.0, gop_seconds=0.5))
     frames = [source.next(i, 1_000_000 + i * 33_333) for i in range(40)]

@@ -20,13 +20,13 @@ import av
 import numpy as np
 import pytest
 
-from server.cmaf import find_box, iter_boxes
 from server.loadtest.plan import LoadConfig
 from server.loadtest.results import summary, table
 from server.loadtest.run import LoadResult, run_load
 from server.loadtest.viewer_stats import ViewerStats
+from server.media.cmaf import find_box, iter_boxes
 from server.quic.certs import CertBundle, generate_cert
-from server.relay import Relay, RelayConfig
+from server.relay.relay import Relay, RelayConfig
 
 if os.environ.get("CI"):
     import moq

@@ -27,7 +27,7 @@ import pytest
 
 from server.auth import Claims, generate_key, load_key, sign
 from server.auth.keys import AuthKey
-from server.process import stop_child
+from server.ops.process import stop_child
 
 ROOT = Path(__file__).resolve().parents[1]
 UP_SECONDS = 30.0
@@ -38,9 +38,9 @@ NOT_A_JWT = "upcast-secret-not-a-jwt-7f3a9c"
 # The viewer: a real client process with upcast's own logging at DEBUG, JSON lines.
 VIEWER = r"""
 import asyncio, logging, sys
-from server.logging_setup import configure_logging
+from server.ops.logging_setup import configure_logging
 from server.moq.events import FrameReceived
-from server.moq_link import connect_moq, with_token
+from server.quic.moq_link import connect_moq, with_token
 from server.quic.client import WtConnectError
 
 configure_logging(logging.DEBUG, "json")

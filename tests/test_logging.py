@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from server.cli import _selected_command, build_parser
-from server.logging_setup import ENV_VAR, JsonLineFormatter, default_log_format
+from server.ops.logging_setup import ENV_VAR, JsonLineFormatter, default_log_format
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -91,7 +91,7 @@ def test_a_process_logs_json_lines_from_the_flag_or_the_environment() -> None:
         # The relay's own "listening on" summary is a print for people, not a log line.
         lines = [ln for ln in done.stderr.splitlines() if not ln.startswith("upcast relay:")]
         entries = [json.loads(ln) for ln in lines if ln.strip()]
-        assert {e["logger"] for e in entries} >= {"server.relay", "server.commands.relay"}
+        assert {e["logger"] for e in entries} >= {"server.relay.relay", "server.commands.relay"}
         assert all({"ts", "level", "logger", "msg", "process", "pid"} <= set(e) for e in entries)
         assert any("relay listening" in e["msg"] for e in entries)
 
@@ -99,7 +99,7 @@ def test_a_process_logs_json_lines_from_the_flag_or_the_environment() -> None:
 def test_text_stays_the_default() -> None:
     done = run_cli(relay_argv(), None)
     assert done.returncode == 0, done.stderr
-    assert " INFO server.relay: relay listening" in done.stderr
+    assert " INFO server.relay.relay: relay listening" in done.stderr
     assert not any(ln.startswith("{") for ln in done.stderr.splitlines())
 
 

@@ -8,10 +8,10 @@ import logging
 
 import pytest
 
-from server import machine_fit
-from server.frame import Size
-from server.machine_fit import fitted_defaults
-from server.stack_args import add_session_arguments, session_config_from
+from server.frames.frame import Size
+from server.stack import machine_fit
+from server.stack.args import add_session_arguments, session_config_from
+from server.stack.machine_fit import fitted_defaults
 
 HD = Size(1280, 720)
 
@@ -49,7 +49,7 @@ def test_unset_flags_are_fitted_and_logged_once(
     monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
 ) -> None:
     monkeypatch.setattr(machine_fit, "usable_cores", lambda: 2)
-    with caplog.at_level(logging.INFO, logger="server.stack_args"):
+    with caplog.at_level(logging.INFO, logger="server.stack.args"):
         config = session_config_from(_args())
     assert config is not None
     assert (config.fps, config.render_size) == (30.0, "480x270")
@@ -61,7 +61,7 @@ def test_explicit_flags_override(
     monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
 ) -> None:
     monkeypatch.setattr(machine_fit, "usable_cores", lambda: 2)
-    with caplog.at_level(logging.INFO, logger="server.stack_args"):
+    with caplog.at_level(logging.INFO, logger="server.stack.args"):
         config = session_config_from(_args("--fps", "60", "--render-size", "640x360"))
     assert config is not None and (config.fps, config.render_size) == (60.0, "640x360")
     assert not caplog.records

@@ -8,8 +8,8 @@ import re
 import pytest
 from prometheus_client import CollectorRegistry, generate_latest
 
-from server.monitor import FrameRateMonitor
-from server.timing import Stage, new_stamps
+from server.frames.monitor import FrameRateMonitor
+from server.frames.timing import Stage, new_stamps
 
 
 class FakeClock:
@@ -105,12 +105,12 @@ def test_monitors_share_one_registry_by_component() -> None:
 def test_budget_warnings_are_summarised_not_repeated(caplog: pytest.LogCaptureFixture) -> None:
     """A stack that cannot hold its target: 90 s of one check a second, every stage and the
     rate over budget, gives one line at the first miss and then one per WARN_EVERY_S."""
-    from server.monitor import WARN_EVERY_S
+    from server.frames.monitor import WARN_EVERY_S
 
     clock = FakeClock()
     mon = FrameRateMonitor("session", 60.0, clock=clock)
     frame = 0
-    with caplog.at_level(logging.WARNING, logger="server.monitor"):
+    with caplog.at_level(logging.WARNING, logger="server.frames.monitor"):
         for second in range(90):
             for _ in range(20):  # 20 fps against a 60 fps target
                 clock.t = 100.0 + frame / 20.0

@@ -7,9 +7,9 @@ import logging
 
 import pytest
 
-import server.moq_link as moq_link
+import server.quic.moq_link as moq_link
 from server.moq.errors import ErrorCode
-from server.moq_link import MoqLink
+from server.quic.moq_link import MoqLink
 from server.quic.refusals import RateLimitedLog
 
 
@@ -69,7 +69,7 @@ def test_a_thousand_protocol_errors_log_at_most_a_dozen_lines(
             assert wt.closes and wt.closes[0][0] == ErrorCode.PROTOCOL_VIOLATION
         await asyncio.sleep(1.2)  # the summary line comes once the second is over
 
-    with caplog.at_level(logging.DEBUG, logger="server.moq_link"):
+    with caplog.at_level(logging.DEBUG, logger="server.quic.moq_link"):
         asyncio.run(flood())
     warnings = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
     assert len(warnings) <= 12, warnings
@@ -81,7 +81,7 @@ def test_a_thousand_protocol_errors_log_at_most_a_dozen_lines(
 def test_a_clean_close_stays_info_and_is_not_counted(
     fresh_limit: RateLimitedLog, caplog: pytest.LogCaptureFixture
 ) -> None:
-    with caplog.at_level(logging.INFO, logger="server.moq_link"):
+    with caplog.at_level(logging.INFO, logger="server.quic.moq_link"):
         for _ in range(50):
             link, _ = new_link()
             link.close(0, "bye")

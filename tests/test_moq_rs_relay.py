@@ -28,12 +28,12 @@ from typing import Any
 
 import pytest
 
-from server.encode import EncodedFrame
-from server.frame import FrameMeta, Size
+from server.frames.frame import FrameMeta, Size
 from server.loadtest.synthetic import SyntheticPublisher, SyntheticSettings
 from server.loadtest.viewer import CATALOG_TRACK, TIMING_TRACK, LoadViewer, ViewerConfig
+from server.media.encode import EncodedFrame
 from server.moq.events import FrameReceived
-from server.moq_link import MoqLink
+from server.quic.moq_link import MoqLink
 
 if os.environ.get("CI"):
     import moq

@@ -11,8 +11,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from server.frame import RenderFrame, Size
-from server.render.renderer import Renderer
+from server.frames.frame import RenderFrame, Size
+from server.game.render.renderer import Renderer
 from server.train.dataset import DatasetSpec, generate
 from upscalers import metrics, registry
 from upscalers.neural import conv_flops, load

@@ -22,11 +22,11 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from server.frame import Size
-from server.process import stop_child
-from server.ring import SHM_DIR
-from server.ring_frames import create_display_ring
-from server.timing import Stage
+from server.frames.frame import Size
+from server.frames.ring import SHM_DIR
+from server.frames.ring_frames import create_display_ring
+from server.frames.timing import Stage
+from server.ops.process import stop_child
 from upscalers import registry
 
 RENDER = "320x180"
@@ -294,7 +294,7 @@ def test_bad_config_names_the_field() -> None:
 
 
 def test_preview_serves_a_test_fed_ring(ring_name: str, tmp_path: Path) -> None:
-    from server.preview import PreviewServer
+    from server.stack.preview import PreviewServer
 
     size = Size(64, 48)
     ring = create_display_ring(ring_name, size)
@@ -337,7 +337,7 @@ def test_preview_serves_a_test_fed_ring(ring_name: str, tmp_path: Path) -> None:
 
 
 def test_preview_snapshot_before_any_frame_is_503(ring_name: str, tmp_path: Path) -> None:
-    from server.preview import PreviewServer
+    from server.stack.preview import PreviewServer
 
     ring = create_display_ring(ring_name, Size(32, 32))
     try:
@@ -371,8 +371,8 @@ def test_duration_ends_the_session_cleanly() -> None:
 def test_a_restarted_worker_starts_with_the_method_switched_to(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    from server import stack as stack_module
-    from server.stack import LocalStack, SessionConfig
+    from server.stack import local as stack_module
+    from server.stack.local import LocalStack, SessionConfig
 
     launched: list[list[str]] = []
     monkeypatch.setattr(stack_module.subprocess, "Popen", lambda argv, **_: launched.append(argv))

@@ -1,4 +1,4 @@
-"""Prometheus metrics of the game and worker processes (server/metrics_process.py)."""
+"""Prometheus metrics of the game and worker processes (server/ops/metrics.py)."""
 
 from __future__ import annotations
 
@@ -14,15 +14,15 @@ from pathlib import Path
 import numpy as np
 from prometheus_client import CollectorRegistry, generate_latest
 
-from server.control import ControlServer, GetStatus, SetUpscaler, send_control
-from server.frame import Size
-from server.game import GameLoop
-from server.metrics_process import GAME_METRICS, WORKER_METRICS, game_registry, worker_registry
-from server.render.camera import CameraInput
-from server.render.renderer import Renderer, RenderTargets
-from server.ring import RingMode
-from server.ring_frames import create_display_ring, create_render_ring, put_render_frame
-from server.worker import UpscaleWorker
+from server.frames.frame import Size
+from server.frames.ring import RingMode
+from server.frames.ring_frames import create_display_ring, create_render_ring, put_render_frame
+from server.game.loop import GameLoop
+from server.game.render.camera import CameraInput
+from server.game.render.renderer import Renderer, RenderTargets
+from server.ops.metrics import GAME_METRICS, WORKER_METRICS, game_registry, worker_registry
+from server.worker.control import ControlServer, GetStatus, SetUpscaler, send_control
+from server.worker.upscale import UpscaleWorker
 from upscalers.host import UpscalerHost
 
 RENDER = Size(96, 54)

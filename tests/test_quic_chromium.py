@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from server.browser_paths import CHROMIUM, CHROMIUM_ARGS
+from server.ops.browser_paths import CHROMIUM, CHROMIUM_ARGS
 from server.quic import Endpoints, generate_cert, serve
 from tests.test_quic_wt import SERVER_HANDLERS, echo_factory
 

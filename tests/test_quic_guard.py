@@ -27,7 +27,7 @@ from server.quic.guard import (
     GuardLimits,
     check_connect_path,
 )
-from server.relay import Relay
+from server.relay.relay import Relay
 from tests.relay_harness import Publisher, Viewer, running_relay, until
 
 PINNED_AIOQUIC = "1.7.2"

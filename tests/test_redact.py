@@ -17,11 +17,11 @@ from hypothesis import strategies as st
 
 from server.auth.keys import AuthKey
 from server.auth.tokens import Claims, sign
-from server.logging_setup import JsonLineFormatter, RedactingFilter, install_redaction
+from server.ops.logging_setup import JsonLineFormatter, RedactingFilter, install_redaction
+from server.ops.redact import REDACTED, redact_text, redact_url
 from server.quic import CertBundle, WtConnectError, WtRequest, WtSession, connect, generate_cert
 from server.quic import serve as serve_wt
 from server.quic.session import Refusal
-from server.redact import REDACTED, redact_text, redact_url
 
 SECRET = "SECRETtoken123"
 JWT = sign(AuthKey(b"k" * 32), Claims.for_("game", put=("",)))

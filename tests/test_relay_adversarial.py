@@ -47,7 +47,7 @@ from server.bench.adversary_types import (
 from server.moq.errors import ErrorCode
 from server.quic.certs import CertBundle, generate_cert
 from server.quic.guard import GuardLimits
-from server.relay import Relay
+from server.relay.relay import Relay
 from tests.relay_harness import Publisher, connected_viewers, running_relay, until
 
 FPS = 30.0

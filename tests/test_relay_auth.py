@@ -24,7 +24,7 @@ from server.moq.limits import IngressLimits
 from server.quic.certs import CertBundle, generate_cert
 from server.quic.client import WtConnectError
 from server.quic.guard import GuardLimits
-from server.relay import Relay
+from server.relay.relay import Relay
 from tests.relay_harness import Peer, Publisher, Viewer, running_relay, until
 
 
@@ -83,7 +83,7 @@ def test_token_on_a_path_outside_its_root_gets_403(cert: CertBundle, key: AuthKe
         async with running_relay(cert, authorizer=Authorizer(key)) as relay:
             token = session_tokens(key, "game").publisher
             link_url = f"https://localhost:{relay.port}/other"
-            from server.moq_link import connect_moq
+            from server.quic.moq_link import connect_moq
 
             with pytest.raises(WtConnectError, match="status 403"):
                 await connect_moq(link_url, cert_hash_hex=cert.sha256_hex, token=token)

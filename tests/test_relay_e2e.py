@@ -20,7 +20,7 @@ from server.moq import events as ev
 from server.moq.errors import ErrorCode
 from server.quic.certs import CertBundle, generate_cert
 from server.quic.http_fetch import http_get
-from server.relay import Relay
+from server.relay.relay import Relay
 from tests.relay_harness import (
     Publisher,
     Viewer,

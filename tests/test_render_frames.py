@@ -9,14 +9,14 @@ import numpy as np
 import pytest
 import torch
 
-from server.frame import FrameFlags, Size
-from server.render.camera import CameraInput, CameraPose
-from server.render.renderer import Renderer, RenderTargets
-from server.render.scenes import CUT_TIME, SCENES
-from server.render.shading import linear_to_srgb, quantize_into
-from server.render.shapes import Box, SceneObject
-from server.render.textures import SKIMAGE_FILES, skimage_data_dir
-from server.render.transforms import jitter_phase_count
+from server.frames.frame import FrameFlags, Size
+from server.game.render.camera import CameraInput, CameraPose
+from server.game.render.renderer import Renderer, RenderTargets
+from server.game.render.scenes import CUT_TIME, SCENES
+from server.game.render.shading import linear_to_srgb, quantize_into
+from server.game.render.shapes import Box, SceneObject
+from server.game.render.textures import SKIMAGE_FILES, skimage_data_dir
+from server.game.render.transforms import jitter_phase_count
 
 SMALL = Size(160, 90)
 

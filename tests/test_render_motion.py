@@ -7,9 +7,9 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from server.frame import RenderFrame, Size
-from server.render.renderer import Renderer
-from server.render.scenes import SCENES
+from server.frames.frame import RenderFrame, Size
+from server.game.render.renderer import Renderer
+from server.game.render.scenes import SCENES
 
 SIZE = Size(320, 180)
 FPS = 60.0

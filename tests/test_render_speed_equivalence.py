@@ -7,12 +7,12 @@ import math
 import numpy as np
 import torch
 
-from server.frame import Size
-from server.render.rays import ObjectInstance, make_grid, screen_rects
-from server.render.renderer import Renderer
-from server.render.shading import encode_srgb_into, linear_to_srgb, mip_level, quantize_into
-from server.render.shapes import Box, SceneObject
-from server.render.textures import LEVELS
+from server.frames.frame import Size
+from server.game.render.rays import ObjectInstance, make_grid, screen_rects
+from server.game.render.renderer import Renderer
+from server.game.render.shading import encode_srgb_into, linear_to_srgb, mip_level, quantize_into
+from server.game.render.shapes import Box, SceneObject
+from server.game.render.textures import LEVELS
 
 
 def test_srgb_table_matches_pow_within_one_code() -> None:

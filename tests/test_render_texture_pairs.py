@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import torch
 
-from server.render.shading import mip_level, sample_texture
-from server.render.textures import LEVEL_OFFSETS, PYRAMID_TEXELS, SIZE, texture_atlas
+from server.game.render.shading import mip_level, sample_texture
+from server.game.render.textures import LEVEL_OFFSETS, PYRAMID_TEXELS, SIZE, texture_atlas
 
 
 def _plain(atlas, u, v, tex, foot):  # type: ignore[no-untyped-def]

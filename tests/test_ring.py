@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from server.frame import Camera, FrameFlags, FrameMeta, Size
-from server.ring import (
+from server.frames.frame import Camera, FrameFlags, FrameMeta, Size
+from server.frames.ring import (
     DISPLAY_PLANES,
     MAGIC,
     RENDER_PLANES,
@@ -23,7 +23,7 @@ from server.ring import (
     RingMode,
     SlotState,
 )
-from server.ring_frames import (
+from server.frames.ring_frames import (
     attach_display_ring,
     attach_render_ring,
     create_render_ring,
@@ -31,7 +31,7 @@ from server.ring_frames import (
     render_frame_of,
     write_meta,
 )
-from server.timing import Stage
+from server.frames.timing import Stage
 from tests.ringutil import (
     child_hold_read_then_hang,
     child_write_half_then_hang,

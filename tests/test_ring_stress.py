@@ -9,9 +9,9 @@ import time
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from server.frame import Size
-from server.ring import FrameRing, RingMode
-from server.ring_frames import attach_render_ring, create_render_ring
+from server.frames.frame import Size
+from server.frames.ring import FrameRing, RingMode
+from server.frames.ring_frames import attach_render_ring, create_render_ring
 from tests.ringutil import child_produce, fill_frame, frame_checksum
 
 W, H = 24, 16

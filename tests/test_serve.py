@@ -32,7 +32,7 @@ import pytest
 from server.serve.config import ConfigFileError, load_overrides, session_configs
 from server.serve.control_client import request_control
 from server.session.session_control import SessionControl
-from server.stack import SessionConfig, session_files
+from server.stack.local import SessionConfig, session_files
 from server.stream_config import StreamConfig
 from tests.serve_harness import ROOT, SMALL, Served, serve
 

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import json
 
-from server.encode import EncodedFrame
-from server.frame import Camera, FrameMeta
+from server.frames.frame import Camera, FrameMeta
+from server.frames.timing import Stage, stamp
+from server.media.encode import EncodedFrame
 from server.moq import events as ev
 from server.session.broadcast import GameBroadcast
-from server.timing import Stage, stamp
 from tests.moq_pipe import Pipe
 
 CATALOG = b'{"video":{"renditions":{}}}'

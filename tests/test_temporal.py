@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import torch
 
-from server.frame import Camera, FrameFlags, FrameMeta, RenderFrame, Size
-from server.render.renderer import Renderer, RenderTargets
-from server.render.transforms import jitter_offset, jitter_phase_count
+from server.frames.frame import Camera, FrameFlags, FrameMeta, RenderFrame, Size
+from server.game.render.renderer import Renderer, RenderTargets
+from server.game.render.transforms import jitter_offset, jitter_phase_count
 from upscalers import metrics, registry
 from upscalers.output import to_uint8
 from upscalers.temporal import TemporalUpscaler

@@ -19,8 +19,8 @@ import pytest
 import torch
 
 from server.eval.upscalers import _render_frames
-from server.frame import FrameFlags, RenderFrame, Size
-from server.render.transforms import jitter_phase_count
+from server.frames.frame import FrameFlags, RenderFrame, Size
+from server.game.render.transforms import jitter_phase_count
 from tests.test_temporal import DISPLAY, RENDER, pattern_frame, poisoned
 from upscalers.temporal import TemporalUpscaler
 

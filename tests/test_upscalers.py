@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from server.frame import Camera, FrameFlags, FrameMeta, RenderFrame, Size
+from server.frames.frame import Camera, FrameFlags, FrameMeta, RenderFrame, Size
 from upscalers import registry
 from upscalers.base import Upscaler
 from upscalers.host import UpscalerHost

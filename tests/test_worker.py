@@ -13,16 +13,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from server.control import GetStatus, SetCachePolicy, SetUpscaler, send_control
-from server.frame import RenderFrame, Size
-from server.render.renderer import Renderer, RenderTargets
-from server.ring import RingMode
-from server.ring_frames import (
+from server.frames.frame import RenderFrame, Size
+from server.frames.ring import RingMode
+from server.frames.ring_frames import (
     create_display_ring,
     create_render_ring,
     display_frame_of,
     put_render_frame,
 )
+from server.game.render.renderer import Renderer, RenderTargets
+from server.worker.control import GetStatus, SetCachePolicy, SetUpscaler, send_control
 from upscalers.host import UpscalerHost
 from upscalers.output import to_uint8
 

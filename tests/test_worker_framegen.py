@@ -13,17 +13,17 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
-from server.frame import FrameFlags, FrameMeta, RenderFrame, Size
-from server.render.renderer import Renderer, RenderTargets
-from server.ring import RingMode
-from server.ring_frames import (
+from server.frames.frame import FrameFlags, FrameMeta, RenderFrame, Size
+from server.frames.ring import RingMode
+from server.frames.ring_frames import (
     create_display_ring,
     create_render_ring,
     display_frame_of,
     put_render_frame,
 )
-from server.worker import UpscaleWorker
-from server.worker_prediction import PredictionStage
+from server.game.render.renderer import Renderer, RenderTargets
+from server.worker.prediction import PredictionStage
+from server.worker.upscale import UpscaleWorker
 from upscalers.framegen import Prediction
 from upscalers.framegen.compose import composite_dynamic
 from upscalers.host import UpscalerHost
@@ -230,7 +230,7 @@ def test_worker_thread_budget_covers_the_compiled_kernels() -> None:
 
     import numba
 
-    from server.cpu_threads import limit_compiled_threads
+    from server.ops.cpu_threads import limit_compiled_threads
 
     seen: list[int] = []
 

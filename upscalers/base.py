@@ -7,7 +7,7 @@ from typing import ClassVar, Literal
 
 import torch
 
-from server.frame import RenderFrame, Size
+from server.frames.frame import RenderFrame, Size
 
 # Where a method has both, "numba" runs its compiled CPU kernels and "torch" its tensor
 # code (the reference, and the CUDA path); "auto" picks the kernels wherever they run.

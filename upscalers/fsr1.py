@@ -18,7 +18,7 @@ from typing import ClassVar
 
 import torch
 
-from server.frame import RenderFrame, Size
+from server.frames.frame import RenderFrame, Size
 from upscalers.base import BACKENDS, Backend, Upscaler, numba_can_run
 from upscalers.compiled import CompiledFunction
 from upscalers.fsr1_cpu import Fsr1Cpu, usable_input

@@ -15,7 +15,7 @@ from typing import Any
 
 import torch
 
-from server.frame import FrameFlags, RenderFrame, Size
+from server.frames.frame import FrameFlags, RenderFrame, Size
 from upscalers import registry
 from upscalers.base import Upscaler
 from upscalers.cache.policies import make_policy

@@ -14,7 +14,7 @@ from typing import ClassVar
 
 import torch
 
-from server.frame import RenderFrame, Size
+from server.frames.frame import RenderFrame, Size
 from upscalers.base import Upscaler
 from upscalers.fsr1 import frame_color
 

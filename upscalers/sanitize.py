@@ -17,7 +17,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 import numpy.typing as npt
 
-from server.frame import RenderFrame
+from server.frames.frame import RenderFrame
 
 # Larger motion than this many frame widths is not motion, it is garbage.
 _MAX_MOTION_FRAMES = 4.0

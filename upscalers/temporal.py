@@ -1,6 +1,6 @@
 """Temporal upscaler (FSR 2 / DLSS class): jittered samples accumulated in display-size history.
 
-Consumes exactly the frame contract of ``server/frame.py`` and nothing else:
+Consumes exactly the frame contract of ``server/frames/frame.py`` and nothing else:
 
 - render pixel (i, j) of this frame was sampled at (i + 0.5 + jx, j + 0.5 + jy);
 - motion (mx, my), in render pixels and unjittered, takes the surface seen at a
@@ -59,7 +59,7 @@ from typing import TYPE_CHECKING, ClassVar
 import torch
 import torch.nn.functional as F
 
-from server.frame import FrameFlags, RenderFrame, Size
+from server.frames.frame import FrameFlags, RenderFrame, Size
 from upscalers import temporal_ops as ops
 from upscalers.base import BACKENDS, Backend, Upscaler, numba_can_run
 from upscalers.kernel_readiness import kernels_ready

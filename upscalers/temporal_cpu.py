@@ -24,7 +24,7 @@ import numpy as np
 import numpy.typing as npt
 import torch
 
-from server.frame import RenderFrame, Size
+from server.frames.frame import RenderFrame, Size
 from upscalers import temporal_cpu_kernels as kernels
 from upscalers import temporal_ops as ops
 

@@ -15,7 +15,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from server.frame import RenderFrame, Size
+from server.frames.frame import RenderFrame, Size
 
 
 def as_tensor(array: Any, device: torch.device) -> torch.Tensor:

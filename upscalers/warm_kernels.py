@@ -33,7 +33,7 @@ from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 
-from server.frame import Camera, FrameMeta, RenderFrame, Size
+from server.frames.frame import Camera, FrameMeta, RenderFrame, Size
 from upscalers.fsr1 import EasuRcasUpscaler, EasuUpscaler
 from upscalers.temporal import TemporalUpscaler
 

@@ -55,7 +55,7 @@ export class FpsMeter {
 
 /** Server stages computed from the timing track: name -> [from stamp, to stamp]. */
 export const SERVER_SPANS: ReadonlyArray<readonly [string, string, string]> = [
-	// Same pairs as server/timing.py STAGE_SPANS so the page and the server agree.
+	// Same pairs as server/frames/timing.py STAGE_SPANS so the page and the server agree.
 	["render", "render_start", "render_end"],
 	["ring_r_handoff", "ring_r_ready", "upscale_start"],
 	["upscale", "upscale_start", "upscale_end"],

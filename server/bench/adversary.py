@@ -28,9 +28,9 @@ from prometheus_client.parser import text_string_to_metric_families
 
 from server.auth.keys import AuthKey, generate_key, load_key
 from server.auth.minting import session_tokens
-from server.process import stop_child
+from server.ops.process import stop_child
 from server.quic.http_fetch import http_get
-from server.relay_process import RelayProcess
+from server.relay.process import RelayProcess
 
 from .adversary_client import Target
 from .adversary_scenarios import SCENARIOS

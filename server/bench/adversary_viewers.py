@@ -14,8 +14,8 @@ import math
 import sys
 import time
 
-from server.event_loop import install_uvloop
 from server.loadtest.viewer import LoadViewer, ViewerConfig
+from server.ops.event_loop import install_uvloop
 
 REPORT_INTERVAL_S = 0.25
 

@@ -39,8 +39,8 @@ def child(method: str, render_text: str, display_text: str, threads: int) -> Non
     started = time.monotonic()
     import torch
 
-    from server.frame import Size
-    from server.render.renderer import Renderer, RenderTargets
+    from server.frames.frame import Size
+    from server.game.render.renderer import Renderer, RenderTargets
     from upscalers.host import UpscalerHost
 
     torch.set_num_threads(threads)

@@ -1,6 +1,6 @@
 """``upcast bench encode``: what encoding a display frame into a CMAF fragment costs.
 
-Real code path: :class:`server.encode.VideoEncoder` on contiguous uint8 RGB
+Real code path: :class:`server.media.encode.VideoEncoder` on contiguous uint8 RGB
 frames (like a ring U slot): RGB->YUV420 (swscale) + x264 + our fMP4 boxes.
 Content: a pan across a mosaic of photographs shipped with scikit-image plus a
 moving block, so there is texture, global motion and object motion.
@@ -27,10 +27,10 @@ from av.video.codeccontext import VideoCodecContext
 from PIL import Image
 
 from server.bench.report import BenchReport, summarize_ms
-from server.cmaf import MOOF_SIZE
-from server.cmaf_read import parse_fragment
-from server.encode import EncodedFrame, EncoderConfig, VideoEncoder
-from server.frame import Size
+from server.frames.frame import Size
+from server.media.cmaf import MOOF_SIZE
+from server.media.cmaf_read import parse_fragment
+from server.media.encode import EncodedFrame, EncoderConfig, VideoEncoder
 
 U8Image = npt.NDArray[np.uint8]
 PHOTOS = ("coffee.png", "astronaut.png", "chelsea.png", "brick.png", "rocket.jpg", "grass.png")

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
-from server.progress import progress
+from server.ops.progress import progress
 
 if TYPE_CHECKING:
     from upscalers.framegen import FramePredictor
@@ -106,9 +106,9 @@ def run(args: argparse.Namespace) -> int:
     import torch
 
     from server.bench.report import BenchReport, summarize_ms
-    from server.frame import RenderFrame, Size
-    from server.render.renderer import Renderer, RenderTargets
-    from server.render.scenes import SCENES, make_scene, parse_scene_list
+    from server.frames.frame import RenderFrame, Size
+    from server.game.render.renderer import Renderer, RenderTargets
+    from server.game.render.scenes import SCENES, make_scene, parse_scene_list
     from upscalers import metrics
 
     size = Size.parse(args.size)

@@ -33,11 +33,11 @@ import numpy.typing as npt
 from server.auth import generate_key, load_key
 from server.auth.minting import session_tokens
 from server.bench.report import BenchReport
-from server.browser_paths import CHROMIUM, CHROMIUM_ARGS, WEB_ROOT
-from server.frame import Size
-from server.relay_process import RelayEndpoint, RelayProcess
+from server.frames.frame import Size
+from server.ops.browser_paths import CHROMIUM, CHROMIUM_ARGS, WEB_ROOT
+from server.relay.process import RelayEndpoint, RelayProcess
 from server.session.runner import StreamingSession, StreamSettings
-from server.stack import LocalStack, SessionConfig
+from server.stack.local import LocalStack, SessionConfig
 
 log = logging.getLogger(__name__)
 

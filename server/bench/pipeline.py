@@ -18,10 +18,10 @@ from typing import Any
 import numpy as np
 
 from server.bench.report import BenchReport, summarize_ms
-from server.frame import FrameFlags
-from server.ring import FrameRing
-from server.stack import LocalStack, SessionConfig
-from server.timing import STAGE_COUNT, STAGE_SPANS, Stage
+from server.frames.frame import FrameFlags
+from server.frames.ring import FrameRing
+from server.frames.timing import STAGE_COUNT, STAGE_SPANS, Stage
+from server.stack.local import LocalStack, SessionConfig
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -33,13 +33,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from server.progress import elapsed_and_left, progress
+from server.ops.progress import elapsed_and_left, progress
 
 if TYPE_CHECKING:
     import numpy as np
     import numpy.typing as npt
 
-    from server.frame import RenderFrame, Size
+    from server.frames.frame import RenderFrame, Size
     from upscalers.cache.cached_upscaler import NeuralUpscalerLike
 
     U8 = npt.NDArray[np.uint8]
@@ -144,7 +144,7 @@ def _psnr(reference: U8, test: U8) -> float:
 def _start_time(scene: str, frames: int, fps: float) -> float:
     """A scene with a cut starts so that the cut falls mid-run: the cached frames
     before it and the recovery after it are both measured."""
-    from server.render.scenes import make_scene
+    from server.game.render.scenes import make_scene
 
     cuts = make_scene(scene).cut_times
     return max(0.0, cuts[0] - (frames // 2 - 0.5) / fps) if cuts else 0.25
@@ -190,8 +190,8 @@ def run_scene(
     display: Size,
 ) -> tuple[list[CaseRun], list[ReferenceRun]]:
     """All cases and their uncached references on one scene, interleaved per frame."""
-    from server.frame import FrameFlags, Size
-    from server.render.renderer import Renderer, RenderTargets
+    from server.frames.frame import FrameFlags, Size
+    from server.game.render.renderer import Renderer, RenderTargets
     from upscalers import metrics
     from upscalers.cache.cached_upscaler import CachedUpscaler
     from upscalers.output import to_uint8
@@ -357,9 +357,9 @@ def run(args: argparse.Namespace, load: LoadNetwork | None = None) -> int:
 
     from server.bench.reframe_tables import must_show_checks, speedup_flip_plot, tables
     from server.bench.report import BenchReport
-    from server.frame import Size
-    from server.render.renderer import Renderer, RenderTargets
-    from server.render.scenes import parse_scene_list
+    from server.frames.frame import Size
+    from server.game.render.renderer import Renderer, RenderTargets
+    from server.game.render.scenes import parse_scene_list
 
     try:
         display = Size.parse(args.display_size)

@@ -30,8 +30,8 @@ from typing import Any
 
 from server.bench.report import BenchReport
 from server.moq.events import Event, FrameReceived
-from server.moq_link import MoqLink, connect_moq
-from server.process import stop_child
+from server.ops.process import stop_child
+from server.quic.moq_link import MoqLink, connect_moq
 
 ROOT = Path(__file__).resolve().parents[2]
 UP_TIMEOUT_S = 240.0

@@ -20,9 +20,9 @@ from typing import Any
 import numpy as np
 
 from server.bench.report import BenchReport, summarize_ms
-from server.frame import Size
-from server.ring import DISPLAY_PLANES, RENDER_PLANES, FrameRing, PlaneSpec
-from server.timing import Stage
+from server.frames.frame import Size
+from server.frames.ring import DISPLAY_PLANES, RENDER_PLANES, FrameRing, PlaneSpec
+from server.frames.timing import Stage
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -49,12 +49,12 @@ def _port(text: str) -> int:
 def run(args: argparse.Namespace) -> int:
     import torch
 
-    from server.frame import Size
-    from server.game import GameLoop
-    from server.game_input import InputReceiver
-    from server.metrics_process import game_registry, serve_metrics
-    from server.render.renderer import Renderer
-    from server.ring_frames import attach_render_ring
+    from server.frames.frame import Size
+    from server.frames.ring_frames import attach_render_ring
+    from server.game.input import InputReceiver
+    from server.game.loop import GameLoop
+    from server.game.render.renderer import Renderer
+    from server.ops.metrics import game_registry, serve_metrics
 
     torch.set_num_threads(args.threads)
     stop = threading.Event()

@@ -14,8 +14,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from server.event_loop import install_uvloop
 from server.loadtest.plan import MAX_DURATION_S, MAX_VIEWERS, LoadConfig
+from server.ops.event_loop import install_uvloop
 
 SYNTHETIC_SLACK_S = 120.0  # the synthetic publisher outlives the run by at most this
 
@@ -114,7 +114,7 @@ def _synthetic_argv(args: argparse.Namespace, duration_s: float) -> list[str]:
 
 
 def _synthetic_problem(args: argparse.Namespace) -> str | None:
-    from server.frame import Size
+    from server.frames.frame import Size
     from server.loadtest.synthetic import SyntheticSettings
 
     try:
@@ -165,8 +165,8 @@ def run(args: argparse.Namespace) -> int:
 def _publisher_config(args: argparse.Namespace) -> dict[str, Any]:
     if not args.synthetic_publisher:
         return {"publisher": "external (not started by the load test)"}
-    from server.encode import default_bitrate
-    from server.frame import Size
+    from server.frames.frame import Size
+    from server.media.encode import default_bitrate
 
     size = Size.parse(args.size)
     bitrate_kbps = args.bitrate_kbps or default_bitrate(size.width, size.height, args.fps) // 1000

@@ -16,7 +16,7 @@ import threading
 import time
 from typing import Any
 
-from server.stack_args import add_session_arguments, session_config_from
+from server.stack.args import add_session_arguments, session_config_from
 
 log = logging.getLogger(__name__)
 
@@ -65,8 +65,8 @@ def _bind_message(host: str, port: int, exc: OSError) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from server.preview import PreviewServer
-    from server.stack import LocalStack
+    from server.stack.local import LocalStack
+    from server.stack.preview import PreviewServer
 
     config = session_config_from(args)
     if config is None:

@@ -12,14 +12,14 @@ import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from server.browser_paths import WEB_ROOT
 from server.moq.limits import IngressLimits
+from server.ops.browser_paths import WEB_ROOT
 from server.quic.guard import GuardLimits
 
 if TYPE_CHECKING:
     from server.auth import Authorizer
     from server.quic.certs import CertBundle
-    from server.relay_settings import RelaySettings
+    from server.relay.settings import RelaySettings
 
 log = logging.getLogger(__name__)
 
@@ -111,7 +111,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def _settings(args: argparse.Namespace) -> RelaySettings | None:
     """The flags as a RelaySettings, or None after printing which field is wrong."""
     from server.config_errors import validated
-    from server.relay_settings import RelaySettings
+    from server.relay.settings import RelaySettings
 
     fields = {name: getattr(args, name) for name in RelaySettings.model_fields}
     return validated(RelaySettings, "relay", **fields)
@@ -138,7 +138,7 @@ def run(args: argparse.Namespace) -> int:
     except KeyFileError as exc:
         print(f"upcast relay: --auth-key: {exc}", file=sys.stderr)
         return 2
-    from server.event_loop import install_uvloop
+    from server.ops.event_loop import install_uvloop
 
     install_uvloop()
     return asyncio.run(_main(args, settings, authorizer))
@@ -159,7 +159,7 @@ async def _main(args: argparse.Namespace, settings: RelaySettings, auth: Authori
 async def _serve(
     args: argparse.Namespace, settings: RelaySettings, auth: Authorizer, cert: CertBundle
 ) -> int:
-    from server.relay import Relay, RelayConfig
+    from server.relay.relay import Relay, RelayConfig
 
     web_root = settings.web_root
     if web_root is None and (WEB_ROOT / "index.html").is_file():

@@ -10,7 +10,7 @@ from typing import Any
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     # Scene names come from the numpy-only registry: no torch import at parse time.
-    from server.render.scenes import SCENE_NAMES
+    from server.game.render.scenes import SCENE_NAMES
 
     parser.add_argument("--scene", required=True, choices=SCENE_NAMES, help="scene preset")
     parser.add_argument("--frames", type=int, default=8, help="number of frames")
@@ -27,9 +27,9 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
     from PIL import Image
 
-    from server.frame import Size
-    from server.render.renderer import Renderer
-    from server.render.visualize import depth_image, motion_image
+    from server.frames.frame import Size
+    from server.game.render.renderer import Renderer
+    from server.game.render.visualize import depth_image, motion_image
 
     size = Size.parse(args.size)
     out: Path = args.out

@@ -20,8 +20,8 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from server.browser_paths import WEB_ROOT
-from server.stack_args import add_session_arguments, session_config_from
+from server.ops.browser_paths import WEB_ROOT
+from server.stack.args import add_session_arguments, session_config_from
 
 if TYPE_CHECKING:
     from server.auth.keys import AuthKey
@@ -138,7 +138,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     from server.auth.keys import KeyFileError
     from server.auth.stack_key import stack_key
-    from server.event_loop import install_uvloop
+    from server.ops.event_loop import install_uvloop
 
     install_uvloop()
     if args.relay is not None and args.auth_key is None:
@@ -164,7 +164,7 @@ async def _main(
 ) -> int:
     """``key``: the relay's key file and key (tokens are minted with it), None for an
     open external relay."""
-    from server.relay_process import RelayProcess
+    from server.relay.process import RelayProcess
     from server.serve.http_api import ServeHttp
     from server.serve.supervisor import Supervisor
     from server.serve.tokens import no_token, player_minter, publisher_minter, with_token

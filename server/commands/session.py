@@ -83,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
         if not args.token:
             print(f"upcast session: --token-file {args.token_file} is empty", file=sys.stderr)
             return 2
-    from server.event_loop import install_uvloop
+    from server.ops.event_loop import install_uvloop
 
     install_uvloop()
     return asyncio.run(_main(args, stream))
@@ -92,9 +92,9 @@ def run(args: argparse.Namespace) -> int:
 async def _main(args: argparse.Namespace, stream: StreamConfig) -> int:
     from prometheus_client import CollectorRegistry, start_http_server
 
-    from server.frame import Size
-    from server.ring import RingError
-    from server.ring_frames import attach_display_ring
+    from server.frames.frame import Size
+    from server.frames.ring import RingError
+    from server.frames.ring_frames import attach_display_ring
     from server.session.runner import StreamingSession, StreamSettings
 
     try:

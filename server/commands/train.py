@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from server.frame import Size
+    from server.frames.frame import Size
 
 DEFAULT_DATA_DIR = Path.home() / ".cache" / "upcast"
 
@@ -55,7 +55,7 @@ def _share(text: str) -> float:
 
 def _mip_bias(text: str, render: Size, scale: int) -> float:
     """``--mip-bias`` as the number the dataset key records."""
-    from server.render.mip_bias import game_lod_bias, parse_mip_bias
+    from server.game.render.mip_bias import game_lod_bias, parse_mip_bias
 
     try:
         bias = parse_mip_bias(text, render, render.scaled(scale))
@@ -120,8 +120,8 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
     import torch
 
-    from server.frame import Size
-    from server.render.scenes import parse_scene_list
+    from server.frames.frame import Size
+    from server.game.render.scenes import parse_scene_list
     from server.train.dataset import DatasetSpec, load_or_generate
     from server.train.loop import TrainConfig, train
     from upscalers.neural.features import feature_channels

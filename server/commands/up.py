@@ -17,12 +17,12 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from server.browser_paths import WEB_ROOT
-from server.stack_args import add_session_arguments, session_config_from
+from server.ops.browser_paths import WEB_ROOT
+from server.stack.args import add_session_arguments, session_config_from
 
 if TYPE_CHECKING:
     from server.auth.keys import AuthKey
-    from server.stack import SessionConfig
+    from server.stack.local import SessionConfig
     from server.stream_config import StreamConfig
 
 log = logging.getLogger(__name__)
@@ -97,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
     from server.auth.keys import KeyFileError
     from server.auth.stack_key import stack_key
     from server.config_errors import validated
-    from server.event_loop import install_uvloop
+    from server.ops.event_loop import install_uvloop
     from server.stream_config import StreamConfig
 
     problem = _problem(args)
@@ -133,8 +133,8 @@ async def _main(
     key: tuple[Path, AuthKey],
 ) -> int:
     from server.auth.minting import session_tokens
-    from server.moq_link import with_token
-    from server.relay_process import RelayProcess
+    from server.quic.moq_link import with_token
+    from server.relay.process import RelayProcess
     from server.serve.session_body import LiveSession, SessionPlan, run_game_session
 
     stop = asyncio.Event()

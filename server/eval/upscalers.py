@@ -33,7 +33,6 @@ import numpy as np
 import numpy.typing as npt
 
 from server.bench.report import BenchReport, summarize_ms
-from server.cpu_threads import set_cpu_threads
 from server.eval.methods import (
     COMPILED,
     EAGER_TORCH,
@@ -43,11 +42,12 @@ from server.eval.methods import (
     parse_method,
     sharpness_variants,
 )
-from server.frame import RenderFrame, Size
-from server.progress import elapsed_and_left, progress
-from server.render.mip_bias import MIP_BIAS_HELP, parse_mip_bias
-from server.render.renderer import Renderer, RenderTargets
-from server.render.scenes import SCENE_NAMES, make_scene, parse_scene_list
+from server.frames.frame import RenderFrame, Size
+from server.game.render.mip_bias import MIP_BIAS_HELP, parse_mip_bias
+from server.game.render.renderer import Renderer, RenderTargets
+from server.game.render.scenes import SCENE_NAMES, make_scene, parse_scene_list
+from server.ops.cpu_threads import set_cpu_threads
+from server.ops.progress import elapsed_and_left, progress
 from upscalers import metrics
 from upscalers.host import UpscalerHost
 from upscalers.output import to_uint8

@@ -14,7 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from urllib.parse import urlsplit
 
-from server.redact import redact_url
+from server.ops.redact import redact_url
 
 MAX_VIEWERS = 1000
 MAX_DURATION_S = 3600.0

@@ -17,8 +17,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TextIO
 
+from server.ops.redact import redact_url
 from server.quic.http_fetch import fetch_cert_hash
-from server.redact import redact_url
 
 from .plan import LoadConfig, RelayAddress, RunPlan, make_plan, parse_relay_url
 from .progress import ProgressBoard

@@ -34,19 +34,19 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from server.catalog import catalog_for
-from server.cmaf import media_fragment
-from server.cmaf_read import parse_fragment
-from server.encode import EncodedFrame, EncoderConfig, VideoEncoder
-from server.event_loop import install_uvloop
-from server.frame import Camera, FrameMeta, Size
-from server.logging_setup import install_redaction
+from server.frames.frame import Camera, FrameMeta, Size
+from server.frames.timing import Stage, stamp
+from server.media.catalog import catalog_for
+from server.media.cmaf import media_fragment
+from server.media.cmaf_read import parse_fragment
+from server.media.encode import EncodedFrame, EncoderConfig, VideoEncoder
 from server.moq.events import Event
-from server.moq_link import MoqLink, connect_moq
+from server.ops.event_loop import install_uvloop
+from server.ops.logging_setup import install_redaction
+from server.ops.redact import redact_url
 from server.quic.client import WtConnectError
-from server.redact import redact_url
+from server.quic.moq_link import MoqLink, connect_moq
 from server.session.broadcast import GameBroadcast
-from server.timing import Stage, stamp
 
 log = logging.getLogger("upcast.synthetic")
 

@@ -27,7 +27,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
-from server.cmaf_read import TrackDefaults, parse_fragment, track_defaults, track_timescales
+from server.media.cmaf_read import TrackDefaults, parse_fragment, track_defaults, track_timescales
 from server.moq.events import (
     AnnounceReceived,
     Event,
@@ -37,8 +37,8 @@ from server.moq.events import (
     SubscribeClosed,
 )
 from server.moq.session import SessionClosedError
-from server.moq_link import MoqLink, connect_moq
 from server.quic.client import WtConnectError
+from server.quic.moq_link import MoqLink, connect_moq
 
 from .plan import RunPlan
 from .viewer_stats import ViewerStats

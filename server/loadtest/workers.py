@@ -22,8 +22,8 @@ from multiprocessing.connection import Connection
 from multiprocessing.process import BaseProcess
 from typing import Any
 
-from server.event_loop import install_uvloop
-from server.logging_setup import install_redaction
+from server.ops.event_loop import install_uvloop
+from server.ops.logging_setup import install_redaction
 
 from .plan import RunPlan
 from .viewer import Snapshot, ViewerConfig, WorkerResult, run_viewers

@@ -24,7 +24,7 @@ from aioquic.quic.connection import QuicConnection
 from aioquic.quic.events import ConnectionTerminated, QuicEvent
 from cryptography.hazmat.primitives import serialization
 
-from server.redact import redact_url
+from server.ops.redact import redact_url
 
 from . import codes, sf
 from .certs import der_sha256_hex
@@ -39,7 +39,7 @@ DEFAULT_PROTOCOLS = ("moq-lite-03",)
 class WtConnectError(ConnectionError):
     """The WebTransport session could not be established (reason in the message).
 
-    The message names the URL with its ``?jwt=`` token masked (server.redact): it
+    The message names the URL with its ``?jwt=`` token masked (server.ops.redact): it
     is logged by every caller that retries."""
 
 

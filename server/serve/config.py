@@ -16,7 +16,7 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from server.config_types import CachePolicyName, PredictorName, SizeText, UpscalerName
-from server.stack import SessionConfig
+from server.stack.local import SessionConfig
 from server.stream_config import StreamConfig
 
 

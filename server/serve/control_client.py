@@ -18,9 +18,9 @@ from pydantic import ValidationError
 
 from server.moq.events import Event, FrameReceived, SubscribeClosed, SubscribeRequested
 from server.moq.session import SessionClosedError
-from server.moq_link import MoqLink, connect_moq
+from server.ops.redact import redact_url
 from server.quic.client import WtConnectError
-from server.redact import redact_url
+from server.quic.moq_link import MoqLink, connect_moq
 from server.session.session_control import STATUS_TRACK, SessionControl, StatusRecord
 
 log = logging.getLogger(__name__)

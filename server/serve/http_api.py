@@ -16,7 +16,7 @@ from prometheus_client import CollectorRegistry, generate_latest
 from prometheus_client.core import GaugeMetricFamily
 from prometheus_client.registry import Collector
 
-from server.relay_process import RelayProcess
+from server.relay.process import RelayProcess
 from server.serve.supervisor import Supervisor
 
 log = logging.getLogger(__name__)

@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     from server.serve.status_reporter import StatusReporter
     from server.session.runner import StreamingSession
-    from server.stack import LocalStack, SessionConfig
+    from server.stack.local import LocalStack, SessionConfig
     from server.stream_config import StreamConfig
 
 log = logging.getLogger(__name__)
@@ -67,10 +67,10 @@ async def run_game_session(
     / TimeoutError with a message for a person)."""
     from prometheus_client import CollectorRegistry, start_http_server
 
-    from server.frame import Size
+    from server.frames.frame import Size
     from server.serve.status_reporter import StatusReporter
     from server.session.runner import StreamingSession, StreamSettings
-    from server.stack import LocalStack
+    from server.stack.local import LocalStack
     from upscalers import registry as upscaler_registry
 
     loop = asyncio.get_running_loop()

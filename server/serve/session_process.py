@@ -18,7 +18,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from server.logging_setup import install_redaction
+from server.ops.logging_setup import install_redaction
 from server.serve.session_body import LiveSession, SessionPlan, run_game_session
 from server.serve.spec import SessionSpec
 
@@ -97,7 +97,7 @@ def main(argv: list[str]) -> int:
     )
     install_redaction()
     logging.getLogger("quic").setLevel(logging.WARNING)
-    from server.event_loop import install_uvloop
+    from server.ops.event_loop import install_uvloop
 
     install_uvloop()
     return asyncio.run(_run(spec))

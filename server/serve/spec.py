@@ -6,7 +6,7 @@ from pathlib import Path
 
 from pydantic import BaseModel, ConfigDict
 
-from server.stack import SessionConfig
+from server.stack.local import SessionConfig
 from server.stream_config import StreamConfig
 
 

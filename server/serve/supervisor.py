@@ -25,7 +25,7 @@ from typing import Any
 
 from server.serve.spec import SessionSpec
 from server.serve.tokens import TokenMinter, no_token
-from server.stack import SessionConfig, session_files
+from server.stack.local import SessionConfig, session_files
 from server.stream_config import StreamConfig
 
 log = logging.getLogger(__name__)

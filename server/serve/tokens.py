@@ -6,7 +6,7 @@ from collections.abc import Callable
 
 from server.auth.keys import AuthKey
 from server.auth.minting import session_tokens
-from server.moq_link import with_token as _with_token
+from server.quic.moq_link import with_token as _with_token
 
 TokenMinter = Callable[[str], str | None]
 

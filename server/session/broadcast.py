@@ -27,8 +27,9 @@ import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from server.encode import EncodedFrame
-from server.frame import FrameMeta
+from server.frames.frame import FrameMeta
+from server.frames.timing import Stage, stamp
+from server.media.encode import EncodedFrame
 from server.moq import paths
 from server.moq.errors import ErrorCode
 from server.moq.events import (
@@ -45,7 +46,6 @@ from server.moq.session import MoqSession
 from server.session.session_control import STATUS_TRACK
 from server.session.timing_track import TRACK_NAME as TIMING_TRACK
 from server.session.timing_track import encode_timing, timing_record
-from server.timing import Stage, stamp
 
 log = logging.getLogger(__name__)
 

@@ -19,11 +19,11 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from server.encode import EncodedFrame, VideoEncoder
-from server.frame import FrameMeta
-from server.ring import FrameRing
-from server.ring_frames import display_frame_of
-from server.timing import Stage, stamp
+from server.frames.frame import FrameMeta
+from server.frames.ring import FrameRing
+from server.frames.ring_frames import display_frame_of
+from server.frames.timing import Stage, stamp
+from server.media.encode import EncodedFrame, VideoEncoder
 
 log = logging.getLogger(__name__)
 

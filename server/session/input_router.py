@@ -16,8 +16,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from server.control import SetCachePolicy, SetUpscaler, send_control
-from server.game_input import InputMessage, send_input
+from server.game.input import InputMessage, send_input
 from server.session.session_control import ControlResult
 from server.session.viewer_input import (
     BadViewerMessage,
@@ -29,6 +28,7 @@ from server.session.viewer_input import (
     look_input,
     parse_viewer_message,
 )
+from server.worker.control import SetCachePolicy, SetUpscaler, send_control
 from upscalers import registry
 
 log = logging.getLogger(__name__)

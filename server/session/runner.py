@@ -19,15 +19,15 @@ import numpy as np
 import numpy.typing as npt
 from prometheus_client import CollectorRegistry
 
-from server.catalog import catalog_for
-from server.encode import EncoderConfig, VideoEncoder
-from server.frame import Size
-from server.monitor import FrameRateMonitor
+from server.frames.frame import Size
+from server.frames.monitor import FrameRateMonitor
+from server.frames.ring import FrameRing
+from server.media.catalog import catalog_for
+from server.media.encode import EncoderConfig, VideoEncoder
 from server.moq.events import Event
-from server.moq_link import MoqLink, connect_moq
+from server.ops.redact import redact_url
 from server.quic.client import WtConnectError
-from server.redact import redact_url
-from server.ring import FrameRing
+from server.quic.moq_link import MoqLink, connect_moq
 from server.session.broadcast import GameBroadcast
 from server.session.capture import CapturedFrame, CaptureThread
 from server.session.input_router import InputRouter

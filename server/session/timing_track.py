@@ -1,7 +1,7 @@
 """The ``timing`` track: one JSON frame per video frame with its stage stamps.
 
 Stamps are wall-clock microseconds (the monotonic ones mean nothing outside
-this machine), keyed by the stage labels of ``server/timing.py``, only for
+this machine), keyed by the stage labels of ``server/frames/timing.py``, only for
 stages the frame reached. The browser and the load test add their own stages
 (``client_receive``...) and compute every span the same way the server does.
 ``pts_us`` ties the record to the video frame (the CMAF decode time); ``n``
@@ -13,8 +13,8 @@ from __future__ import annotations
 import json
 from typing import Any
 
-from server.frame import FrameFlags, FrameMeta
-from server.timing import Stage
+from server.frames.frame import FrameFlags, FrameMeta
+from server.frames.timing import Stage
 
 TRACK_NAME = "timing"
 

@@ -17,7 +17,7 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 
-from server.game_input import MAX_LOOK_DEG, InputMessage
+from server.game.input import MAX_LOOK_DEG, InputMessage
 from server.session.session_control import SessionControl
 
 MAX_MESSAGE_BYTES = 2048

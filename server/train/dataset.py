@@ -27,11 +27,11 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from server.frame import Size
-from server.progress import elapsed_and_left
-from server.progress import progress as report_progress
-from server.render.renderer import Renderer
-from server.render.scenes import SCENE_NAMES
+from server.frames.frame import Size
+from server.game.render.renderer import Renderer
+from server.game.render.scenes import SCENE_NAMES
+from server.ops.progress import elapsed_and_left
+from server.ops.progress import progress as report_progress
 
 TRAIN_TIME_RANGE = (1.5, 9.0)
 FRAME_STEPS = (1.0 / 60.0, 1.0 / 30.0)

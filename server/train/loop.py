@@ -32,8 +32,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from server.progress import elapsed_and_left
-from server.progress import progress as report_progress
+from server.ops.progress import elapsed_and_left
+from server.ops.progress import progress as report_progress
 from server.train.dataset import Dataset
 from upscalers.cache.layer_cache import CacheMode, LayerCache
 from upscalers.neural.features import FrameTensors, History, build_features

@@ -13,7 +13,7 @@ from collections.abc import Iterator
 
 import pytest
 
-from server.browser_paths import WEB_ROOT as DIST
+from server.ops.browser_paths import WEB_ROOT as DIST
 
 
 class _QuietHandler(http.server.SimpleHTTPRequestHandler):

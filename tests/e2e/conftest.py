@@ -23,8 +23,8 @@ import numpy.typing as npt
 import pytest
 
 from server.bench.latency import LiveStack
-from server.browser_paths import WEB_ROOT
-from server.stack import SessionConfig
+from server.ops.browser_paths import WEB_ROOT
+from server.stack.local import SessionConfig
 from tests.chromium import browser_marks
 
 RENDER = "320x180"

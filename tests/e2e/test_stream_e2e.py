@@ -19,8 +19,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from server.encode import EncodedFrame
-from server.frame import FrameMeta
+from server.frames.frame import FrameMeta
+from server.media.encode import EncodedFrame
 from tests.e2e.conftest import (
     FPS,
     Live,

@@ -20,7 +20,7 @@ from typing import Any
 
 import pytest
 
-from server.ring import SHM_DIR
+from server.frames.ring import SHM_DIR
 from tests.e2e.conftest import DISPLAY, RENDER, needs, open_player, stats
 
 pytestmark = [*needs("index.html"), pytest.mark.timeout(120)]

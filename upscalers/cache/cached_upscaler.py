@@ -30,7 +30,7 @@ import numpy.typing as npt
 import torch
 from torch import nn
 
-from server.frame import FrameFlags, RenderFrame, Size
+from server.frames.frame import FrameFlags, RenderFrame, Size
 from upscalers.cache.layer_cache import CacheMode, LayerCache
 from upscalers.cache.policies import CachePolicy, make_policy
 from upscalers.cache.policies.budget import psnr_db

@@ -6,7 +6,7 @@ from typing import ClassVar
 
 import torch
 
-from server.frame import RenderFrame, Size
+from server.frames.frame import RenderFrame, Size
 from upscalers.base import Upscaler
 from upscalers.cache.cached_upscaler import CachedUpscaler, CacheStats
 from upscalers.cache.policies import make_policy

@@ -28,7 +28,7 @@ import numpy as np
 import numpy.typing as npt
 import torch
 
-from server.frame import FrameFlags, RenderFrame, Size
+from server.frames.frame import FrameFlags, RenderFrame, Size
 from upscalers.framegen.geometry import Reprojection
 
 BoolArray = npt.NDArray[np.bool_]

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from server.frame import RenderFrame
+from server.frames.frame import RenderFrame
 from upscalers.framegen.base import Prediction
 
 

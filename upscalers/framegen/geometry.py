@@ -1,4 +1,4 @@
-"""Reprojection between the cached camera and a new one (conventions of server/frame.py).
+"""Reprojection between the cached camera and a new one (conventions of server/frames/frame.py).
 
 A cached pixel at continuous position (x, y) with NDC depth z has NDC
 (2x/W - 1, 1 - 2y/H, z). The paper's reprojection matrix

@@ -37,7 +37,7 @@ from typing import TYPE_CHECKING, Literal
 import numpy.typing as npt
 import torch
 
-from server.frame import FrameFlags, RenderFrame
+from server.frames.frame import FrameFlags, RenderFrame
 from upscalers.framegen.base import (
     CachedFrame,
     FramePredictor,

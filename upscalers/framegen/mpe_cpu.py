@@ -23,7 +23,7 @@ import numpy as np
 import numpy.typing as npt
 from numba import set_parallel_chunksize
 
-from server.frame import RenderFrame, Size
+from server.frames.frame import RenderFrame, Size
 from upscalers.framegen import cpu_kernels as kernels
 from upscalers.framegen.base import Prediction
 from upscalers.framegen.geometry import Reprojection, pixel_space_matrices, z_at_infinity
@@ -232,7 +232,7 @@ def warm_up(options: MpeOptions) -> float:
     global _WARM
     if _WARM:
         return 0.0
-    from server.frame import Camera, FrameMeta
+    from server.frames.frame import Camera, FrameMeta
 
     t0 = time.perf_counter()
     w, h = 24, 14

@@ -22,7 +22,7 @@ from typing import ClassVar
 import torch
 import torch.nn.functional as F
 
-from server.frame import RenderFrame, Size
+from server.frames.frame import RenderFrame, Size
 from upscalers import temporal_ops as ops
 from upscalers.base import Upscaler
 from upscalers.neural.features import FrameTensors, History, build_features

@@ -1,0 +1,118 @@
+"""Player input into the game process: JSON datagrams on a Unix socket.
+
+Same transport as the worker's control socket (server/worker/control.py) for the same
+reasons; the streaming layer forwards browser inputs here. A receiver thread
+validates each datagram and queues it for the game loop, which applies queued
+inputs at the start of the next frame.
+"""
+
+from __future__ import annotations
+
+import logging
+import socket
+import threading
+from collections.abc import Callable
+from pathlib import Path
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from server.game.render.camera import CameraInput
+
+log = logging.getLogger(__name__)
+
+MAX_INPUT_BYTES = 1024
+# Bounds on one event: a browser sending absurd deltas must not teleport the camera.
+MAX_LOOK_DEG = 90.0
+MAX_MOVE_M = 5.0
+
+
+class InputMessage(BaseModel):
+    """One input event: look deltas in degrees, moves in metres (player's frame)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    dyaw_deg: float = Field(default=0.0, ge=-MAX_LOOK_DEG, le=MAX_LOOK_DEG, allow_inf_nan=False)
+    dpitch_deg: float = Field(default=0.0, ge=-MAX_LOOK_DEG, le=MAX_LOOK_DEG, allow_inf_nan=False)
+    forward: float = Field(default=0.0, ge=-MAX_MOVE_M, le=MAX_MOVE_M, allow_inf_nan=False)
+    right: float = Field(default=0.0, ge=-MAX_MOVE_M, le=MAX_MOVE_M, allow_inf_nan=False)
+    up: float = Field(default=0.0, ge=-MAX_MOVE_M, le=MAX_MOVE_M, allow_inf_nan=False)
+    # The sender's sequence number; the game writes the last one it applied into
+    # every frame header (input_seq) so clients can measure input-to-photon latency.
+    seq: int = Field(default=0, ge=0, lt=1 << 62)
+    # Render scale (display / render size) wanted from the next frame on; None: unchanged.
+    render_scale: float | None = Field(default=None, ge=1.0, le=4.0, allow_inf_nan=False)
+    # Camera jitter on/off from the next frame on (on only for temporal upscalers).
+    jitter: bool | None = None
+    # Frame generation on/off from the next frame on: the game renders every other
+    # frame fully and draws only its moving objects on the others.
+    frame_generation: bool | None = None
+
+    def to_event(self) -> CameraInput:
+        return CameraInput(self.dyaw_deg, self.dpitch_deg, self.forward, self.right, self.up)
+
+
+class InputReceiver:
+    """Binds ``path`` and hands every valid event and its seq to ``sink`` from a daemon thread."""
+
+    def __init__(
+        self,
+        path: Path,
+        sink: Callable[[CameraInput, int], None],
+        on_scale: Callable[[float], None] | None = None,
+        on_jitter: Callable[[bool], None] | None = None,
+        on_frame_generation: Callable[[bool], None] | None = None,
+    ) -> None:
+        self.path = path
+        self.accepted = 0
+        self.refused = 0
+        path.unlink(missing_ok=True)
+        self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self._sock.bind(str(path))
+        self._sock.settimeout(0.2)
+        self._sink = sink
+        self._on_scale = on_scale
+        self._on_jitter = on_jitter
+        self._on_frame_generation = on_frame_generation
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._loop, name="game-input", daemon=True)
+        self._thread.start()
+
+    def _loop(self) -> None:
+        while not self._stop.is_set():
+            try:
+                data = self._sock.recv(MAX_INPUT_BYTES + 1)
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            try:
+                if len(data) > MAX_INPUT_BYTES:
+                    raise ValueError(f"input datagram of {len(data)} bytes")
+                message = InputMessage.model_validate_json(data)
+            except (ValidationError, ValueError) as exc:
+                self.refused += 1
+                log.warning("input refused: %s", str(exc).splitlines()[0])
+                continue
+            self.accepted += 1
+            if message.render_scale is not None and self._on_scale is not None:
+                self._on_scale(message.render_scale)
+            if message.jitter is not None and self._on_jitter is not None:
+                self._on_jitter(message.jitter)
+            if message.frame_generation is not None and self._on_frame_generation is not None:
+                self._on_frame_generation(message.frame_generation)
+            self._sink(message.to_event(), message.seq)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._sock.close()
+        self._thread.join(1.0)
+        self.path.unlink(missing_ok=True)
+
+
+def send_input(path: Path, message: InputMessage) -> None:
+    """Fire-and-forget one input event to a game's input socket."""
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    try:
+        sock.sendto(message.model_dump_json().encode(), str(path))
+    finally:
+        sock.close()

@@ -1,0 +1,111 @@
+"""The hang catalog (``catalog.json`` track) of a game broadcast.
+
+Mirrors the zod schema of @moq/hang 0.3.5 (``catalog/root.js``, ``video.js``,
+``container.js``), which @moq/watch 0.4.6 validates every catalog against:
+
+- root: loose object, ``video`` optional.
+- ``video.renditions``: record of *track name* -> rendition config; we publish
+  one rendition on track ``video``. ``video.display`` ({width, height}) optional.
+- rendition: ``codec`` (string, required), ``container`` (for CMAF
+  ``{"kind": "cmaf", "init": <base64 ftyp+moov>}``, both required: a cmaf
+  container without ``init`` is rejected), optional integers (u53)
+  ``codedWidth``, ``codedHeight``, ``bitrate``, ``jitter`` (ms), optional
+  number ``framerate``, optional boolean ``optimizeForLatency``.
+- ``description`` (hex avcC) is left out on purpose: for CMAF the player reads
+  the avcC from ``init``, and one source of truth cannot disagree with itself.
+"""
+
+from __future__ import annotations
+
+import base64
+import math
+from typing import TYPE_CHECKING, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+from pydantic.alias_generators import to_camel
+
+if TYPE_CHECKING:
+    from server.media.encode import VideoEncoder
+
+VIDEO_TRACK = "video"
+
+
+class _CatalogModel(BaseModel):
+    # Python names in snake_case, JSON in the schema's camelCase; unknown fields refused
+    # so a typo cannot silently vanish from the catalog.
+    model_config = ConfigDict(
+        alias_generator=to_camel, populate_by_name=True, extra="forbid", frozen=True
+    )
+
+
+class CmafContainer(_CatalogModel):
+    kind: Literal["cmaf"] = "cmaf"
+    init: str  # base64 of the init segment (ftyp + moov)
+
+
+class VideoRendition(_CatalogModel):
+    codec: str  # WebCodecs codec string, e.g. avc1.42c01f
+    container: CmafContainer
+    coded_width: int = Field(ge=0)
+    coded_height: int = Field(ge=0)
+    framerate: float = Field(gt=0)
+    bitrate: int | None = Field(default=None, ge=0)
+    optimize_for_latency: bool = True
+    # Longest wait (ms) between frames the player should expect: one frame interval,
+    # as every frame is published the moment it is encoded.
+    jitter: int | None = Field(default=None, ge=0)
+
+
+class Display(_CatalogModel):
+    width: int = Field(ge=0)
+    height: int = Field(ge=0)
+
+
+class VideoSection(_CatalogModel):
+    renditions: dict[str, VideoRendition]
+    display: Display | None = None
+
+
+class Catalog(_CatalogModel):
+    video: VideoSection
+
+    def to_json(self) -> bytes:
+        """The catalog frame: compact UTF-8 JSON, optional fields left out when unset."""
+        return self.model_dump_json(by_alias=True, exclude_none=True).encode()
+
+
+def video_catalog(
+    *,
+    codec: str,
+    init_segment: bytes,
+    width: int,
+    height: int,
+    fps: float,
+    bitrate: int | None = None,
+    track: str = VIDEO_TRACK,
+) -> Catalog:
+    """A catalog with one CMAF H.264 rendition published on ``track``."""
+    rendition = VideoRendition(
+        codec=codec,
+        container=CmafContainer(init=base64.b64encode(init_segment).decode("ascii")),
+        coded_width=width,
+        coded_height=height,
+        framerate=fps,
+        bitrate=bitrate,
+        jitter=math.ceil(1000 / fps),
+    )
+    return Catalog(video=VideoSection(renditions={track: rendition}))
+
+
+def catalog_for(encoder: VideoEncoder, track: str = VIDEO_TRACK) -> Catalog:
+    """The catalog describing what ``encoder`` produces."""
+    cfg = encoder.config
+    return video_catalog(
+        codec=encoder.codec_string(),
+        init_segment=encoder.init_segment,
+        width=cfg.width,
+        height=cfg.height,
+        fps=cfg.fps,
+        bitrate=cfg.target_bitrate,
+        track=track,
+    )

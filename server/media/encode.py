@@ -1,0 +1,285 @@
+"""H.264 encoder for the stream: RGB frames in, one CMAF fragment per frame out.
+
+Tuned for latency the way low-latency game streamers (Sunshine, Selkies) tune
+x264: ``zerolatency`` (no frame threads, no lookahead, no B-frames), a VBV one
+frame deep (``vbv-bufsize = bitrate / fps``) so no frame can take more than
+about one frame interval to transmit, scene cuts off (keyframes only when we
+want a new MoQ group), periodic IDRs and IDRs on demand.
+
+The fragment of a frame is returned by the call that encodes that frame: x264
+in this mode returns every access unit immediately, and the fMP4 boxes are
+written by :mod:`server.media.cmaf` without a muxer that would hold a frame back.
+
+One instance per stream, used by one thread at a time (the asyncio pipeline
+runs :meth:`VideoEncoder.encode` in an executor). PyAV drops the GIL inside
+swscale and x264, so the event loop keeps running while a frame encodes.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from fractions import Fraction
+
+import av
+import numpy as np
+import numpy.typing as npt
+from av.codec.context import Flags
+from av.video.codeccontext import VideoCodecContext
+from av.video.frame import PictureType, VideoFrame
+from av.video.reformatter import ColorRange, Colorspace, VideoReformatter
+
+from server.media.cmaf import AvcConfig, annexb_to_avcc, init_segment, media_fragment
+
+TIMESCALE = 1_000_000  # fMP4 and encoder clock in microseconds, so pts_us is written as-is
+
+# Reference point for the default bitrate: 6 Mbit/s at 1280x720, 60 fps.
+_REFERENCE_BITS_PER_PIXEL_FRAME = 6_000_000 / (1280 * 720 * 60)
+
+# libavutil AVColorSpace / primaries / transfer / range codes for BT.709 limited range.
+_BT709 = 1
+_RANGE_MPEG = 1
+
+
+def default_bitrate(width: int, height: int, fps: float) -> int:
+    """Bits per second scaled with pixels per second from 6 Mbit/s at 720p60."""
+    return round(_REFERENCE_BITS_PER_PIXEL_FRAME * width * height * fps)
+
+
+@dataclass(frozen=True)
+class EncoderConfig:
+    """Encoder settings; the constructor checks them and names the bad field."""
+
+    width: int
+    height: int
+    fps: float = 60.0
+    bitrate: int | None = None  # bits/s; None: default_bitrate(width, height, fps)
+    preset: str = "ultrafast"
+    gop_seconds: float = 2.0  # periodic IDR interval
+    vbv_frames: float = 1.0  # VBV buffer in frame intervals (1 = one-frame VBV)
+    keyframe_min_interval_ms: float = 250.0  # no forced IDR sooner than this after any IDR
+    threads: int = 0  # x264 threads, 0 = x264 chooses (sliced threads under zerolatency)
+    convert_threads: int = 1  # swscale slice threads for RGB->YUV (the game shares the cores)
+
+    def __post_init__(self) -> None:
+        for name in ("width", "height"):
+            value = getattr(self, name)
+            if value <= 0 or value % 2:
+                raise ValueError(
+                    f"{name} must be a positive even number for yuv420p (x264), got {value};"
+                    " pad or crop the frame to an even size"
+                )
+        if self.fps <= 0:
+            raise ValueError(f"fps must be positive, got {self.fps}")
+        if self.bitrate is not None and self.bitrate < 10_000:
+            raise ValueError(f"bitrate must be at least 10000 bit/s, got {self.bitrate}")
+        if self.gop_seconds <= 0:
+            raise ValueError(f"gop_seconds must be positive, got {self.gop_seconds}")
+        if self.vbv_frames <= 0:
+            raise ValueError(f"vbv_frames must be positive, got {self.vbv_frames}")
+        if self.keyframe_min_interval_ms < 0:
+            raise ValueError(
+                f"keyframe_min_interval_ms must be >= 0, got {self.keyframe_min_interval_ms}"
+            )
+        if self.threads < 0:
+            raise ValueError(f"threads must be >= 0, got {self.threads}")
+        if self.convert_threads < 1:
+            raise ValueError(f"convert_threads must be >= 1, got {self.convert_threads}")
+        if self.preset not in _X264_PRESETS:
+            raise ValueError(
+                f"preset must be one of {', '.join(_X264_PRESETS)}, got {self.preset!r}"
+            )
+
+    @property
+    def target_bitrate(self) -> int:
+        return self.bitrate or default_bitrate(self.width, self.height, self.fps)
+
+    @property
+    def gop_frames(self) -> int:
+        return max(1, round(self.gop_seconds * self.fps))
+
+    @property
+    def frame_duration_us(self) -> int:
+        return round(1e6 / self.fps)
+
+
+_X264_PRESETS = (
+    "ultrafast",
+    "superfast",
+    "veryfast",
+    "faster",
+    "fast",
+    "medium",
+    "slow",
+    "slower",
+    "veryslow",
+    "placebo",
+)
+
+
+@dataclass(frozen=True)
+class EncodedFrame:
+    """One encoded frame: a complete CMAF fragment (moof + mdat), one MoQ frame."""
+
+    frame_id: int
+    pts_us: int
+    keyframe: bool
+    fragment: bytes
+    encode_ms: float  # whole call on this thread: RGB->YUV + x264 + boxing
+    convert_ms: float  # of which RGB->YUV420 (swscale)
+    x264_ms: float  # of which x264
+
+
+class VideoEncoder:
+    """libx264 via PyAV, producing CMAF fragments with zero frames of delay."""
+
+    def __init__(self, config: EncoderConfig) -> None:
+        self.config = config
+        self._codec = _open_x264(config)
+        extradata = self._codec.extradata
+        if not extradata:
+            raise RuntimeError("libx264 returned no global header (SPS/PPS)")
+        # One reformatter for the stream: it keeps its swscale context, which a fresh
+        # frame.reformat() would rebuild for every frame (about 1 ms at 360p).
+        self._reformatter = VideoReformatter()
+        self.avc = AvcConfig.from_annexb(extradata)
+        self.init_segment = init_segment(config.width, config.height, TIMESCALE, self.avc)
+        self._sequence = 0
+        self._last_pts_us: int | None = None
+        self._keyframe_requested = False
+        self._last_keyframe_pts_us: int | None = None
+        self.frames_in = 0
+        self.fragments_out = 0
+        self.forced_keyframes = 0
+
+    def codec_string(self) -> str:
+        """WebCodecs/RFC 6381 codec string from the SPS, e.g. ``avc1.42c01f``."""
+        return self.avc.codec_string()
+
+    def request_keyframe(self) -> None:
+        """Make a coming frame an IDR: the next one, or, if an IDR (periodic or forced)
+        was made less than ``keyframe_min_interval_ms`` of stream time ago, the first
+        one after that interval.
+
+        A storm of requests (many viewers joining, a client retrying) thus costs at
+        most one IDR per interval, and no request is lost. Safe to call from the event
+        loop while another thread encodes: it only sets a flag.
+        """
+        self._keyframe_requested = True
+
+    def encode(self, rgb: npt.NDArray[np.uint8], frame_id: int, pts_us: int) -> EncodedFrame:
+        """Encode one (H, W, 3) uint8 RGB frame; ``pts_us`` must increase.
+
+        The array may be a read-only view of shared memory; it is only read, and
+        only during this call.
+        """
+        start = time.perf_counter_ns()
+        cfg = self.config
+        if rgb.shape != (cfg.height, cfg.width, 3) or rgb.dtype != np.uint8:
+            raise ValueError(
+                f"frame must be uint8 ({cfg.height}, {cfg.width}, 3), got {rgb.dtype} {rgb.shape}"
+            )
+        if self._last_pts_us is not None and pts_us <= self._last_pts_us:
+            raise ValueError(f"pts_us must increase: {pts_us} after {self._last_pts_us}")
+        self._last_pts_us = pts_us
+        self.frames_in += 1
+
+        t_convert = time.perf_counter_ns()
+        yuv = self._to_yuv(rgb)
+        t_x264 = time.perf_counter_ns()
+        yuv.pts = pts_us
+        forced = self._take_keyframe_request(pts_us)
+        if forced:
+            yuv.pict_type = PictureType.I
+        packets = self._codec.encode(yuv)
+        t_box = time.perf_counter_ns()
+        # zerolatency + no B-frames + no lookahead: exactly one packet per frame in.
+        if len(packets) != 1:
+            raise RuntimeError(f"x264 returned {len(packets)} packets for one frame (delay?)")
+        packet = packets[0]
+        keyframe = packet.is_keyframe
+        if keyframe:
+            # Any IDR serves a pending request and restarts the cooldown.
+            self._keyframe_requested = False
+            self._last_keyframe_pts_us = pts_us
+        if forced:
+            self.forced_keyframes += 1
+
+        self._sequence += 1
+        fragment = media_fragment(
+            self._sequence, pts_us, cfg.frame_duration_us, annexb_to_avcc(bytes(packet)), keyframe
+        )
+        self.fragments_out += 1
+        end = time.perf_counter_ns()
+        return EncodedFrame(
+            frame_id=frame_id,
+            pts_us=pts_us,
+            keyframe=keyframe,
+            fragment=fragment,
+            encode_ms=(end - start) / 1e6,
+            convert_ms=(t_x264 - t_convert) / 1e6,
+            x264_ms=(t_box - t_x264) / 1e6,
+        )
+
+    def _take_keyframe_request(self, pts_us: int) -> bool:
+        if not self._keyframe_requested:
+            return False
+        last = self._last_keyframe_pts_us
+        if last is not None and pts_us - last < self.config.keyframe_min_interval_ms * 1000:
+            return False  # stays requested: served by the first frame after the interval
+        self._keyframe_requested = False
+        return True
+
+    def _to_yuv(self, rgb: npt.NDArray[np.uint8]) -> VideoFrame:
+        # from_numpy_buffer wraps the array's memory (no copy); padded rows (a crop)
+        # become the frame's linesize. Only pixel-strided views need a copy.
+        if rgb.strides[1:] == (3, 1):
+            frame = VideoFrame.from_numpy_buffer(rgb, format="rgb24")
+        else:
+            frame = VideoFrame.from_ndarray(np.ascontiguousarray(rgb), format="rgb24")
+        # BT.709 limited range, matching the VUI written into the SPS, so the browser
+        # converts back with the same matrix.
+        return self._reformatter.reformat(
+            frame,
+            format="yuv420p",
+            src_colorspace=Colorspace.ITU709,
+            dst_colorspace=Colorspace.ITU709,
+            dst_color_range=ColorRange.MPEG,
+            threads=self.config.convert_threads,
+        )
+
+
+def _open_x264(cfg: EncoderConfig) -> VideoCodecContext:
+    codec = av.CodecContext.create("libx264", "w")
+    codec.width = cfg.width
+    codec.height = cfg.height
+    codec.pix_fmt = "yuv420p"
+    codec.time_base = Fraction(1, TIMESCALE)
+    codec.framerate = Fraction(cfg.fps).limit_denominator(1001)
+    # SPS/PPS once in extradata (for avcC), not repeated in every IDR.
+    codec.flags |= Flags.global_header
+    codec.thread_count = cfg.threads
+    codec.colorspace = _BT709
+    codec.color_primaries = _BT709
+    codec.color_trc = _BT709
+    codec.color_range = _RANGE_MPEG
+    kbit = max(1, cfg.target_bitrate // 1000)
+    vbv_kbit = max(1, round(kbit * cfg.vbv_frames / cfg.fps))
+    params = {
+        "keyint": cfg.gop_frames,
+        "scenecut": 0,  # IDRs only when we decide: each one starts a MoQ group
+        "bframes": 0,
+        "rc-lookahead": 0,
+        "sync-lookahead": 0,
+        "bitrate": kbit,
+        "vbv-maxrate": kbit,
+        "vbv-bufsize": vbv_kbit,
+    }
+    codec.options = {
+        "preset": cfg.preset,
+        "tune": "zerolatency",
+        "forced-idr": "1",  # pict_type I -> IDR, not a recovery-point I-frame
+        "x264-params": ":".join(f"{k}={v}" for k, v in params.items()),
+    }
+    codec.open()
+    return codec

@@ -1,0 +1,250 @@
+"""The decoupled upscaler worker: ring R -> upscaler -> ring U, in its own process.
+
+It needs nothing of the game but the ring names: it attaches to ring R as the
+consumer and ring U as the producer, and takes run-time control messages on a
+Unix socket. A frame that makes the upscaler fail is logged and skipped; the
+worker keeps going.
+"""
+
+from __future__ import annotations
+
+import logging
+import signal
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from server.config_types import CachePolicyName, PredictorName, SizeText, UpscalerName
+from server.frames.frame import FrameFlags, Size
+from server.frames.ring import FrameRing
+from server.frames.ring_frames import (
+    attach_display_ring,
+    attach_render_ring,
+    render_frame_of,
+    write_meta,
+)
+from server.frames.timing import Stage, stamp
+from server.ops.cpu_threads import set_cpu_threads
+from server.ops.metrics import serve_metrics, worker_registry
+from server.worker.control import (
+    ControlServer,
+    GetStatus,
+    SetCachePolicy,
+    SetUpscaler,
+    parse_message,
+)
+from server.worker.prediction import PredictionStage
+from upscalers import framegen
+from upscalers.host import UpscalerHost
+from upscalers.output import quantize_into
+
+log = logging.getLogger(__name__)
+
+
+class WorkerConfig(BaseModel):
+    """Worker settings, validated at start."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    ring_in: str = Field(description="name of ring R (G-buffers) to consume")
+    ring_out: str = Field(description="name of ring U (display frames) to produce")
+    upscaler: UpscalerName = Field(default="bilinear", description="upscaler to start with")
+    display_size: SizeText = Field(default="1280x720", description="output size WIDTHxHEIGHT")
+    control_path: Path | None = Field(default=None, description="Unix socket for control")
+    threads: int = Field(
+        default=1, ge=1, le=256, description="CPU threads for torch and for numba's kernels"
+    )
+    attach_timeout_s: float = Field(default=10.0, ge=0, description="wait for the rings")
+    newest: bool = Field(default=False, description="skip to the newest frame when behind")
+    metrics_port: int = Field(
+        default=0, ge=0, le=65535, description="Prometheus /metrics TCP port (0: off)"
+    )
+    predictor: PredictorName = Field(
+        default="mpe",
+        description="frame predictor for the game's PREDICTED ticks (frame generation): "
+        + ", ".join(framegen.available()),
+    )
+    cache_policy: CachePolicyName | None = Field(
+        default=None,
+        description="layer-cache policy of the methods with a cache (unet_cached): "
+        "delta_l, delta_h, budget, every_N, deepcache, motion, NAME@VALUE (None: their default)",
+    )
+    compile: bool = Field(
+        default=False,
+        description="torch.compile the upscalers that have a compiled path (first frame "
+        "of a size waits for the compile; inductor's disk cache makes later starts fast); "
+        "on the CPU the default numba kernels are faster, so this is for CUDA",
+    )
+
+
+@dataclass
+class WorkerStats:
+    # frames: every frame presented into ring U, rendered or predicted.
+    frames: int = 0
+    errors: int = 0
+    output_drops: int = 0
+    switches: int = 0
+    control_messages: int = 0
+    control_refused: int = 0
+
+
+class UpscaleWorker:
+    """The loop body, separated from process concerns so tests can drive it."""
+
+    def __init__(
+        self,
+        ring_in: FrameRing,
+        ring_out: FrameRing,
+        host: UpscalerHost,
+        *,
+        newest: bool = False,
+        prediction: PredictionStage | None = None,
+    ) -> None:
+        ring_out.require_fits(*host.display_size, what="display size")
+        # Turns the game's PREDICTED ticks (only moving objects drawn) into whole frames.
+        self.prediction = prediction or PredictionStage(background=True)
+        self.ring_in = ring_in
+        self.ring_out = ring_out
+        self.host = host
+        self.newest = newest
+        self.stats = WorkerStats()
+        # Seconds per upscale, for the --metrics-port histogram (server/ops/metrics.py).
+        self.on_upscale_time: Callable[[float], None] | None = None
+        ring_in.attach_as_consumer()
+        ring_out.attach_as_producer()
+
+    def process_next(self, timeout_s: float) -> bool:
+        """Upscale one frame if one arrives within ``timeout_s``; False if none came."""
+        lease = self.ring_in.acquire_read(timeout_s, newest=self.newest)
+        if lease is None:
+            return False
+        with lease:
+            frame = render_frame_of(lease)
+            meta = frame.meta
+            stamp(meta.stamps, Stage.UPSCALE_START)
+            if meta.flags & FrameFlags.PREDICTED:
+                # upscale_start..end of a predicted frame spans prediction + composite + upscale.
+                predicted = self.prediction.predict(frame)
+                if predicted is None:
+                    return True  # counted in prediction.stats; the stream skips the tick
+                frame = predicted
+            else:
+                self.prediction.rendered(frame)
+            try:
+                result = self.host.upscale(frame)
+            except Exception:
+                self.stats.errors += 1
+                log.exception(
+                    "upscaler %s failed on frame %d; skipped", self.host.name, meta.frame_id
+                )
+                return True
+        out = self.ring_out.acquire_write(timeout_s=0.5)
+        if out is None:
+            # Lossless ring U and nobody reading it: drop here rather than stall the game.
+            self.stats.output_drops += 1
+            return True
+        with out:
+            size = self.host.display_size
+            views = out.views(size.width, size.height)
+            quantize_into(result, views["color"])
+            stamp(meta.stamps, Stage.UPSCALE_END)
+            if self.on_upscale_time is not None:
+                upscale_ns = meta.stamps[Stage.UPSCALE_END, 0] - meta.stamps[Stage.UPSCALE_START, 0]
+                self.on_upscale_time(float(upscale_ns) / 1e9)
+            write_meta(out.header, meta)
+            out.commit(stamp_stage=Stage.RING_U_READY)
+        self.stats.frames += 1
+        return True
+
+    def handle_control(self, server: ControlServer) -> None:
+        for data, addr in server.poll():
+            self.stats.control_messages += 1
+            try:
+                message = parse_message(data)
+                if isinstance(message, SetUpscaler):
+                    self.host.switch(message.name)
+                    self.stats.switches += 1
+                    reply = {"upscaler": self.host.name, "cache_policy": self.host.cache_policy}
+                    server.reply(addr, {"ok": True, **reply})
+                elif isinstance(message, SetCachePolicy):
+                    self.host.set_cache_policy(message.policy)
+                    server.reply(addr, {"ok": True, "cache_policy": self.host.cache_policy})
+                elif isinstance(message, GetStatus):
+                    server.reply(addr, {"ok": True, **self.status()})
+            except ValueError as exc:
+                self.stats.control_refused += 1
+                log.warning("control message refused: %s", exc)
+                server.reply(addr, {"ok": False, "error": str(exc)})
+
+    def status(self) -> dict[str, Any]:
+        return {
+            "upscaler": self.host.name,
+            "cache_policy": self.host.cache_policy,
+            "display_size": str(self.host.display_size),
+            "frames": self.stats.frames,
+            "errors": self.stats.errors,
+            "output_drops": self.stats.output_drops,
+            "switches": self.stats.switches,
+            "predictor": self.prediction.predictor_name,
+            "predicted": self.prediction.stats.predicted,
+            "prediction_refused": self.prediction.stats.refused,
+            "prediction_errors": self.prediction.stats.errors,
+            "prediction_warming": self.prediction.stats.warming,
+            "sanitized_values": self.host.sanitized_values,
+            "sanitized_frames": self.host.sanitized_frames,
+        }
+
+    def run(self, stop: threading.Event, control: ControlServer | None = None) -> None:
+        last_report = time.monotonic()
+        while not stop.is_set():
+            if control is not None:
+                self.handle_control(control)
+            self.process_next(timeout_s=0.1)
+            now = time.monotonic()
+            if now - last_report >= 10.0:
+                last_report = now
+                log.info("worker: %s", self.status())
+
+
+def run_worker(config: WorkerConfig, stop: threading.Event | None = None) -> int:
+    """Attach to the rings and upscale until stopped (SIGTERM/SIGINT)."""
+    # Set here, on the thread that upscales and predicts: numba's limit is per thread.
+    set_cpu_threads(config.threads)
+    stop = stop or threading.Event()
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(sig, lambda *_: stop.set())
+    ring_in = attach_render_ring(config.ring_in, wait_s=config.attach_timeout_s)
+    ring_out = attach_display_ring(config.ring_out, wait_s=config.attach_timeout_s)
+    host = UpscalerHost(
+        config.upscaler,
+        Size.parse(config.display_size),
+        compile=config.compile,
+        cache_policy=config.cache_policy,
+    )
+    prediction = PredictionStage(config.predictor, background=True)
+    worker = UpscaleWorker(ring_in, ring_out, host, newest=config.newest, prediction=prediction)
+    serve_metrics(worker_registry(worker), config.metrics_port, "worker")
+    control = ControlServer(config.control_path) if config.control_path else None
+    log.info(
+        "worker up: %s -> %s (%s, %s), control %s",
+        config.ring_in,
+        config.ring_out,
+        config.upscaler,
+        config.display_size,
+        config.control_path,
+    )
+    try:
+        worker.run(stop, control)
+    finally:
+        log.info("worker stopping: %s", worker.status())
+        if control is not None:
+            control.close()
+        ring_in.close()
+        ring_out.close()
+    return 0
