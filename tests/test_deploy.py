@@ -443,10 +443,11 @@ def every_process_metric(tmp_path: Path, ring_name: str) -> set[str]:
     from server.frames.monitor import MonitorMetrics
     from server.frames.ring_frames import create_display_ring, create_render_ring
     from server.game.loop import GameLoop
+    from server.game.metrics import game_registry
     from server.game.render.renderer import Renderer
-    from server.ops.metrics import game_registry, worker_registry
     from server.quic.certs import generate_cert
     from server.relay.relay import Relay, RelayConfig
+    from server.worker.metrics import worker_registry
     from server.worker.upscale import UpscaleWorker
     from upscalers.host import UpscalerHost
 

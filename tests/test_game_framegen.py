@@ -18,10 +18,10 @@ from server.frames.ring_frames import create_render_ring, render_frame_of
 from server.frames.timing import Stage
 from server.game.input import InputMessage, InputReceiver, send_input
 from server.game.loop import GameLoop
+from server.game.metrics import game_registry
 from server.game.render.camera import CameraInput
 from server.game.render.renderer import Renderer, RenderTargets
 from server.game.render.scenes import CUT_TIME
-from server.ops.metrics import game_registry
 
 SIZE = Size(96, 54)
 F32 = np.float32

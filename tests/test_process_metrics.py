@@ -1,4 +1,5 @@
-"""Prometheus metrics of the game and worker processes (server/ops/metrics.py)."""
+"""Prometheus metrics of the game and worker processes (server/game/metrics.py,
+server/worker/metrics.py)."""
 
 from __future__ import annotations
 
@@ -18,10 +19,11 @@ from server.frames.frame import Size
 from server.frames.ring import RingMode
 from server.frames.ring_frames import create_display_ring, create_render_ring, put_render_frame
 from server.game.loop import GameLoop
+from server.game.metrics import GAME_METRICS, game_registry
 from server.game.render.camera import CameraInput
 from server.game.render.renderer import Renderer, RenderTargets
-from server.ops.metrics import GAME_METRICS, WORKER_METRICS, game_registry, worker_registry
 from server.worker.control import ControlServer, GetStatus, SetUpscaler, send_control
+from server.worker.metrics import WORKER_METRICS, worker_registry
 from server.worker.upscale import UpscaleWorker
 from upscalers.host import UpscalerHost
 

@@ -63,36 +63,10 @@ from server.frames.frame import FrameFlags, RenderFrame, Size
 from upscalers import temporal_ops as ops
 from upscalers.base import BACKENDS, Backend, Upscaler, numba_can_run
 from upscalers.kernel_readiness import kernels_ready
+from upscalers.temporal_params import TemporalParams
 
 if TYPE_CHECKING:
     from upscalers.temporal_cpu import HostTemporal
-
-
-@dataclass(frozen=True)
-class TemporalParams:
-    """Tuning of the accumulation; defaults were chosen on the reference game scenes."""
-
-    # Accumulated sample weight is capped here: alpha >= about 1 / (max_weight + 1).
-    max_weight: float = 24.0
-    # Sample weight: Gaussian of the nearest sample's distance from the display pixel
-    # centre, in display pixels; floored so history never freezes.
-    sample_sigma: float = 0.35
-    min_sample_weight: float = 0.01
-    # Disocclusion: history is dropped where the farthest previous depth around the
-    # reprojected position is nearer than this surface by more than this fraction.
-    depth_tolerance: float = 0.05
-    # History weight kept per frame on moving objects (partial trust, never full).
-    dynamic_keep: float = 0.5
-    # Current-frame reconstruction: bilinear between the jittered samples with the
-    # fraction pushed towards the nearest sample (1 = bilinear, larger = crisper).
-    reconstruct_sharpness: float = 3.0
-    # Unsharp amount applied to the render samples (4-neighbour cross): the game picks
-    # texture mips for the render size, accumulation alone cannot undo that blur.
-    presharpen: float = 0.75
-    # History fetch: bilinear plus a Catmull-Rom correction of luma (see _sharpen_fetch);
-    # the gain scales the correction (1 = Catmull-Rom).
-    history_catmull_rom: bool = True
-    history_sharpen_gain: float = 1.0
 
 
 @dataclass

@@ -29,7 +29,7 @@ from upscalers import temporal_cpu_kernels as kernels
 from upscalers import temporal_ops as ops
 
 if TYPE_CHECKING:
-    from upscalers.temporal import TemporalParams
+    from upscalers.temporal_params import TemporalParams
 
 F32Array = npt.NDArray[np.float32]
 I64Array = npt.NDArray[np.int64]

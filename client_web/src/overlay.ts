@@ -1,7 +1,6 @@
 // The stats overlay: text only, redrawn a few times a second (not per frame: layout
 // work on every frame would itself cost presentation time). Toggled with "o"/F2.
-import type { Stats } from "./player";
-import { STAGES } from "./stats";
+import { STAGES, type Stats } from "./stats";
 
 export class Overlay {
 	readonly #element: HTMLElement;

@@ -11,42 +11,8 @@ import { InputCapture, InputPublisher } from "./input";
 import { errorText, MediaSubscription } from "./media";
 import { Overlay } from "./overlay";
 import { Renderer } from "./renderer";
-import { FpsMeter, StageLatency } from "./stats";
+import { FpsMeter, StageLatency, type Stats } from "./stats";
 import { InputToPhoton, TimingJoin } from "./timing";
-
-type Summary = Record<string, { p50?: number; p95?: number; n: number; samples: number[] }>;
-
-export interface Stats {
-	status: string;
-	connected: boolean;
-	version?: string;
-	subscribed: boolean;
-	fps: number;
-	framesReceived: number;
-	framesDecoded: number;
-	framesPresented: number;
-	dropped: number;
-	/** Frames published by the server that never arrived (gaps in the timing counter). */
-	framesLost: number;
-	skippedUndecodable: number;
-	/** Groups left when a newer one arrived (frames may all have been read: see framesLost). */
-	groupsSkipped: number;
-	width: number;
-	height: number;
-	codec?: string;
-	lastPresentedFrameId?: number;
-	lastPresentedPtsUs?: number;
-	/** Share of the last presented frames the server predicted (frame generation), 0..1. */
-	predictedShare: number;
-	inputsSent: number;
-	inputPath: string;
-	inputSubscribers: number;
-	/** Per stage, in ms: render ... publish (server), network, decode, present, total. */
-	latency: Summary;
-	/** Key press -> first frame showing it, ms. */
-	inputToPhoton: { p50?: number; p95?: number; samples: number[] };
-	errors: string[];
-}
 
 const MAX_ERRORS = 50;
 

@@ -53,8 +53,9 @@ def run(args: argparse.Namespace) -> int:
     from server.frames.ring_frames import attach_render_ring
     from server.game.input import InputReceiver
     from server.game.loop import GameLoop
+    from server.game.metrics import game_registry
     from server.game.render.renderer import Renderer
-    from server.ops.metrics import game_registry, serve_metrics
+    from server.ops.metrics import serve_metrics
 
     torch.set_num_threads(args.threads)
     stop = threading.Event()

@@ -42,7 +42,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from pydantic import ValidationError
 
-    from server.worker.upscale import WorkerConfig, run_worker
+    from server.worker.run import run_worker
+    from server.worker.upscale import WorkerConfig
 
     try:
         config = WorkerConfig(

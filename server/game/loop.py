@@ -97,7 +97,7 @@ class GameLoop:
         self._last_full: tuple[int, float] | None = None
         self._force_full = False
         # Seconds per full render / per dynamic-only draw, for the --metrics-port
-        # histograms (server/ops/metrics.py).
+        # histograms (server/game/metrics.py).
         self.on_render_time: Callable[[float], None] | None = None
         self.on_dynamic_time: Callable[[float], None] | None = None
         ring.attach_as_producer()

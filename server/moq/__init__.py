@@ -2,6 +2,8 @@
 
 - `wire`, `messages`: encodings; `session.MoqSession`: one session, both roles;
 - `relay_core.RelayCore`: fan-out over many sessions; no sockets anywhere in this package.
+
+May import: nothing of ``server`` outside this package (sans-IO: no sockets, no asyncio).
 """
 
 from .errors import ErrorCode, ProtocolError

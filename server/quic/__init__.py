@@ -2,6 +2,10 @@
 
 Generic over WtSessionHandler so the moq session plugs in without this package
 knowing moq-lite.
+
+``moq_link`` is the one module that joins a moq-lite session (``server.moq``) to a
+WebTransport session. May import: ``server.moq``, ``server.ops``. Never the relay, a
+session or the media layer.
 """
 
 from .certs import CertBundle, generate_cert, load_cert

@@ -13,15 +13,13 @@ import asyncio
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Protocol
+from typing import Protocol
 
 from aioquic.buffer import encode_uint_var
-from aioquic.quic.connection import stream_is_unidirectional
+from aioquic.h3.connection import H3Connection
+from aioquic.quic.connection import QuicConnection, stream_is_unidirectional
 
 from . import codes
-
-if TYPE_CHECKING:
-    from .connection import WtConnection
 
 log = logging.getLogger(__name__)
 
@@ -88,11 +86,33 @@ class _StreamState:
     send_closed: bool = False
 
 
+class SessionConnection(Protocol):
+    """What a session needs of its connection; ``connection.WtConnection`` is the one
+    implementation (an interface here, so this module does not import connection.py,
+    which imports this one)."""
+
+    _transport: asyncio.DatagramTransport | None
+
+    @property
+    def quic(self) -> QuicConnection: ...
+
+    @property
+    def h3(self) -> H3Connection: ...
+
+    def schedule_transmit(self) -> None: ...
+
+    def register_stream(self, stream_id: int, session: WtSession) -> None: ...
+
+    def stream_discarded(self, stream_id: int) -> bool: ...
+
+    def session_ended(self, session: WtSession, reason: str, *, local: bool) -> None: ...
+
+
 @dataclass(eq=False)  # identity equality: sessions are dict keys and set members
 class WtSession:
     """Send side of a session plus the dispatch of received events to its handler."""
 
-    conn: WtConnection
+    conn: SessionConnection
     session_id: int
     remote_address: Address
     is_client: bool

@@ -9,7 +9,6 @@ worker keeps going.
 from __future__ import annotations
 
 import logging
-import signal
 import threading
 import time
 from collections.abc import Callable
@@ -20,17 +19,13 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field
 
 from server.config_types import CachePolicyName, PredictorName, SizeText, UpscalerName
-from server.frames.frame import FrameFlags, Size
+from server.frames.frame import FrameFlags
 from server.frames.ring import FrameRing
 from server.frames.ring_frames import (
-    attach_display_ring,
-    attach_render_ring,
     render_frame_of,
     write_meta,
 )
 from server.frames.timing import Stage, stamp
-from server.ops.cpu_threads import set_cpu_threads
-from server.ops.metrics import serve_metrics, worker_registry
 from server.worker.control import (
     ControlServer,
     GetStatus,
@@ -113,7 +108,7 @@ class UpscaleWorker:
         self.host = host
         self.newest = newest
         self.stats = WorkerStats()
-        # Seconds per upscale, for the --metrics-port histogram (server/ops/metrics.py).
+        # Seconds per upscale, for the --metrics-port histogram (server/worker/metrics.py).
         self.on_upscale_time: Callable[[float], None] | None = None
         ring_in.attach_as_consumer()
         ring_out.attach_as_producer()
@@ -209,42 +204,3 @@ class UpscaleWorker:
             if now - last_report >= 10.0:
                 last_report = now
                 log.info("worker: %s", self.status())
-
-
-def run_worker(config: WorkerConfig, stop: threading.Event | None = None) -> int:
-    """Attach to the rings and upscale until stopped (SIGTERM/SIGINT)."""
-    # Set here, on the thread that upscales and predicts: numba's limit is per thread.
-    set_cpu_threads(config.threads)
-    stop = stop or threading.Event()
-    if threading.current_thread() is threading.main_thread():
-        for sig in (signal.SIGTERM, signal.SIGINT):
-            signal.signal(sig, lambda *_: stop.set())
-    ring_in = attach_render_ring(config.ring_in, wait_s=config.attach_timeout_s)
-    ring_out = attach_display_ring(config.ring_out, wait_s=config.attach_timeout_s)
-    host = UpscalerHost(
-        config.upscaler,
-        Size.parse(config.display_size),
-        compile=config.compile,
-        cache_policy=config.cache_policy,
-    )
-    prediction = PredictionStage(config.predictor, background=True)
-    worker = UpscaleWorker(ring_in, ring_out, host, newest=config.newest, prediction=prediction)
-    serve_metrics(worker_registry(worker), config.metrics_port, "worker")
-    control = ControlServer(config.control_path) if config.control_path else None
-    log.info(
-        "worker up: %s -> %s (%s, %s), control %s",
-        config.ring_in,
-        config.ring_out,
-        config.upscaler,
-        config.display_size,
-        config.control_path,
-    )
-    try:
-        worker.run(stop, control)
-    finally:
-        log.info("worker stopping: %s", worker.status())
-        if control is not None:
-            control.close()
-        ring_in.close()
-        ring_out.close()
-    return 0

@@ -32,7 +32,7 @@ import torch
 from torch import nn
 
 from upscalers.cache.points import cache_points, default_config_of
-from upscalers.cache.signals import smape
+from upscalers.cache.signals import all_finite, smape
 
 
 class CacheMode(enum.Enum):
@@ -162,15 +162,6 @@ def probe_delta(current: torch.Tensor | None, kept: torch.Tensor | None) -> floa
     if current is None or kept is None or current.shape != kept.shape:
         return math.inf
     return smape(current, kept)
-
-
-def all_finite(t: torch.Tensor) -> bool:
-    """Whether ``t`` holds no NaN or Inf. A sum carries any NaN or Inf through and costs
-    a fraction of an element-wise ``isfinite`` pass; only when the sum is not finite
-    (bad values, or an overflow of huge finite ones) is the exact check run."""
-    if bool(torch.isfinite(t.sum(dtype=torch.float32))):
-        return True
-    return bool(torch.isfinite(t).all())
 
 
 def _version_of(t: torch.Tensor) -> int | None:

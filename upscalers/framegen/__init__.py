@@ -18,7 +18,8 @@ import torch
 
 from upscalers.framegen.backward_warp import BackwardWarpPredictor
 from upscalers.framegen.base import CachedFrame, FramePredictor, Prediction
-from upscalers.framegen.mpe import DEFAULT_TILE, MeshProjectionPredictor, MpeOptions
+from upscalers.framegen.mpe import MeshProjectionPredictor
+from upscalers.framegen.mpe_options import DEFAULT_TILE, MpeOptions
 from upscalers.framegen.repeat import RepeatPredictor
 from upscalers.framegen.splat import SplatPredictor
 

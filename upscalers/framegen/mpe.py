@@ -31,7 +31,6 @@ because eager torch pays for every 230k-pixel intermediate tensor.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import TYPE_CHECKING, Literal
 
 import numpy.typing as npt
@@ -48,30 +47,13 @@ from upscalers.framegen.base import (
 from upscalers.framegen.fill import pull_push_fill
 from upscalers.framegen.geometry import Reprojection, pixel_space_matrices, sky_as_direction
 from upscalers.framegen.mesh import MeshOptions, build_mesh
+from upscalers.framegen.mpe_options import MpeOptions
 from upscalers.framegen.raster import rasterize
 from upscalers.framegen.sample import bilinear, inside, nearest_index, to_texture
 from upscalers.kernel_readiness import kernels_ready
 
 if TYPE_CHECKING:
     from upscalers.framegen.mpe_cpu import HostMeshProjection
-
-DEFAULT_TILE = 16  # the paper: n between 8 and 16
-
-
-@dataclass(frozen=True)
-class MpeOptions:
-    tile: int = DEFAULT_TILE
-    tensile: bool = True
-    shear: bool = True
-    tensile_threshold_px: float = 1.0
-    shear_tolerance: float = 0.02  # relative view-depth difference that still counts as equal
-    shear_min_shift_px: float = 0.0  # the paper's "abs(InUV - prevUV) > Threshold"
-    shear_iterations: int = 1
-    # Larger clipped bounding boxes come from vertices next to the eye; dropped (holes).
-    max_bbox_share: float = 0.125
-    # "numba": compiled CPU kernels (mpe_cpu.py); "torch": this file, the reference and the
-    # CUDA path; "auto": numba on the CPU, torch elsewhere.
-    backend: Literal["auto", "torch", "numba"] = "auto"
 
 
 def _resolve_backend(backend: str, device: torch.device) -> Literal["torch", "numba"]:

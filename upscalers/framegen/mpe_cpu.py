@@ -29,7 +29,7 @@ from upscalers.framegen.base import Prediction
 from upscalers.framegen.geometry import Reprojection, pixel_space_matrices, z_at_infinity
 
 if TYPE_CHECKING:
-    from upscalers.framegen.mpe import MpeOptions
+    from upscalers.framegen.mpe_options import MpeOptions
 
 F32Array = npt.NDArray[np.float32]
 _WORD_ROWS = sys.byteorder == "little"
