@@ -252,6 +252,22 @@ async def stalled_viewers(
 STORM_CONCURRENCY = 4
 
 
+async def _subscribed_session(ctx: AttackContext, result: AttackResult) -> AttackConnection | None:
+    """One more connection with a session that subscribes to the video (when the CONNECT
+    is accepted), noted in `result`; None when the relay did not answer."""
+    result.connections += 1
+    try:
+        conn, session, status = await open_session(ctx.target, timeout=2.0)
+    except (ConnectionError, OSError, TimeoutError):
+        result.statuses.append("no answer")
+        return None
+    result.statuses.append(status or "none")
+    if session is not None:
+        session.moq.subscribe(ctx.broadcast, "video")
+        session.flush()
+    return conn
+
+
 async def connect_storm(ctx: AttackContext, duration_s: float) -> AttackResult:
     """Connect, CONNECT, subscribe, close politely; as fast as 4 loops can."""
     result = AttackResult("connect_storm")
@@ -259,16 +275,9 @@ async def connect_storm(ctx: AttackContext, duration_s: float) -> AttackResult:
 
     async def loop() -> None:
         while time.monotonic() < deadline and result.connections < MAX_CONNECTIONS:
-            result.connections += 1
-            try:
-                conn, session, status = await open_session(ctx.target, timeout=2.0)
-            except (ConnectionError, OSError, TimeoutError):
-                result.statuses.append("no answer")
+            conn = await _subscribed_session(ctx, result)
+            if conn is None:
                 continue
-            result.statuses.append(status or "none")
-            if session is not None:
-                session.moq.subscribe(ctx.broadcast, "video")
-                session.flush()
             result.record_close(conn, first=False)
             conn.close_politely()
             conn.transmit()
@@ -285,16 +294,9 @@ async def vanishing_clients(ctx: AttackContext, duration_s: float) -> AttackResu
     result = AttackResult("vanishing_clients")
     deadline = time.monotonic() + duration_s
     while time.monotonic() < deadline and result.connections < MAX_CONNECTIONS // 4:
-        result.connections += 1
-        try:
-            conn, session, status = await open_session(ctx.target, timeout=2.0)
-        except (ConnectionError, OSError, TimeoutError):
-            result.statuses.append("no answer")
+        conn = await _subscribed_session(ctx, result)
+        if conn is None:
             continue
-        result.statuses.append(status or "none")
-        if session is not None:
-            session.moq.subscribe(ctx.broadcast, "video")
-            session.flush()
         await asyncio.sleep(0.05)
         conn.vanish()
     result.ended = time.monotonic()
