@@ -14,7 +14,7 @@ from __future__ import annotations
 import asyncio
 import struct
 import time
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator, Callable, Coroutine
 from contextlib import asynccontextmanager
 from dataclasses import dataclass
 from typing import Any
@@ -319,6 +319,17 @@ async def connected_viewers(port: int, cert: CertBundle, count: int) -> list[Vie
     viewers = [Viewer() for _ in range(count)]
     await asyncio.gather(*(v.connect(port, cert) for v in viewers))
     return viewers
+
+
+def run_bounded(coro: Coroutine[Any, Any, None], timeout: float = 20.0) -> None:
+    """Run a test's coroutine in a fresh event loop, failing it after `timeout` seconds
+    instead of letting a stuck peer hang the suite."""
+
+    async def bounded() -> None:
+        async with asyncio.timeout(timeout):
+            await coro
+
+    asyncio.run(bounded())
 
 
 async def until(cond: Callable[[], bool], timeout: float = 5.0, step: float = 0.01) -> None:

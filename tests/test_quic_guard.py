@@ -5,9 +5,10 @@ aioquic internals the guard reads (these tests fail if an aioquic upgrade moves 
 from __future__ import annotations
 
 import asyncio
+import functools
 import ssl
 import time
-from collections.abc import AsyncIterator, Coroutine
+from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from importlib.metadata import version
 from typing import Any
@@ -28,7 +29,7 @@ from server.quic.guard import (
     check_connect_path,
 )
 from server.relay.relay import Relay
-from tests.relay_harness import Publisher, Viewer, running_relay, until
+from tests.relay_harness import Publisher, Viewer, run_bounded, running_relay, until
 
 PINNED_AIOQUIC = "1.7.2"
 HUGE = (1 << 62) - 1
@@ -39,12 +40,7 @@ def cert(tmp_path_factory: pytest.TempPathFactory) -> CertBundle:
     return generate_cert(directory=tmp_path_factory.mktemp("cert"))
 
 
-def run(coro: Coroutine[Any, Any, None], timeout: float = 60.0) -> None:
-    async def bounded() -> None:
-        async with asyncio.timeout(timeout):
-            await coro
-
-    asyncio.run(bounded())
+run = functools.partial(run_bounded, timeout=60.0)
 
 
 def refusals(relay: Relay, reason: str) -> float:

@@ -4,11 +4,11 @@ what a flood of refused attempts leaves behind (nothing)."""
 from __future__ import annotations
 
 import asyncio
+import functools
 import gc
 import logging
 import time
 import tracemalloc
-from collections.abc import Coroutine
 from pathlib import Path
 from typing import Any
 
@@ -25,7 +25,7 @@ from server.quic.certs import CertBundle, generate_cert
 from server.quic.client import WtConnectError
 from server.quic.guard import GuardLimits
 from server.relay.relay import Relay
-from tests.relay_harness import Peer, Publisher, Viewer, running_relay, until
+from tests.relay_harness import Peer, Publisher, Viewer, run_bounded, running_relay, until
 
 
 @pytest.fixture(scope="module")
@@ -40,12 +40,7 @@ def key(tmp_path_factory: pytest.TempPathFactory) -> AuthKey:
     return load_key(path)
 
 
-def run(coro: Coroutine[Any, Any, None], timeout: float = 30.0) -> None:
-    async def bounded() -> None:
-        async with asyncio.timeout(timeout):
-            await coro
-
-    asyncio.run(bounded())
+run = functools.partial(run_bounded, timeout=30.0)
 
 
 def unauthorized(relay: Relay, reason: str) -> float:

@@ -7,10 +7,10 @@ of `game`/`video` and viewers (tests/relay_harness.py), bounded by asyncio.timeo
 from __future__ import annotations
 
 import asyncio
+import functools
 import json
 import logging
 import random
-from collections.abc import Coroutine
 from functools import partial
 from typing import Any
 
@@ -26,6 +26,7 @@ from tests.relay_harness import (
     Viewer,
     connected_viewers,
     relay_link,
+    run_bounded,
     running_relay,
     send_buffer_bytes,
     until,
@@ -46,12 +47,7 @@ def no_relay_errors(caplog: pytest.LogCaptureFixture) -> Any:
     assert not errors, [r.getMessage() for r in errors]
 
 
-def run(coro: Coroutine[Any, Any, None], timeout: float = 20.0) -> None:
-    async def bounded() -> None:
-        async with asyncio.timeout(timeout):
-            await coro
-
-    asyncio.run(bounded())
+run = functools.partial(run_bounded, timeout=20.0)
 
 
 async def start_publisher(relay: Relay, cert: CertBundle) -> Publisher:

@@ -9,8 +9,9 @@ strict peer (aioquic itself) closes the connection with STREAM_LIMIT_ERROR.
 from __future__ import annotations
 
 import asyncio
+import functools
 import logging
-from collections.abc import Coroutine, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
 
@@ -24,7 +25,7 @@ from server.moq.transmit import SendData
 from server.quic import client as quic_client
 from server.quic.certs import CertBundle, generate_cert
 from tests.moq_pipe import Pipe, RelayNet, StreamIds
-from tests.relay_harness import Publisher, Viewer, relay_link, running_relay, until
+from tests.relay_harness import Publisher, Viewer, relay_link, run_bounded, running_relay, until
 
 # Uni streams the starved viewer lets the relay open: 3 go to HTTP/3 (control, QPACK
 # encoder and decoder), which leaves 5 for groups until it reads and grants more.
@@ -161,12 +162,7 @@ def no_relay_errors(caplog: pytest.LogCaptureFixture) -> Iterator[None]:
     assert not errors, [r.getMessage() for r in errors]
 
 
-def run(coro: Coroutine[Any, Any, None], timeout: float = 20.0) -> None:
-    async def bounded() -> None:
-        async with asyncio.timeout(timeout):
-            await coro
-
-    asyncio.run(bounded())
+run = functools.partial(run_bounded, timeout=20.0)
 
 
 @contextmanager
