@@ -243,7 +243,8 @@ async def qpack_string_length(ctx: AttackContext, duration_s: float) -> AttackRe
             conn.flush()
             if first:
                 result.crossed_at = time.monotonic()
-            await conn.until_closed(min(1.0, deadline - time.monotonic()))
+            # The full wait even near the deadline (see adversary_sessions._each_session).
+            await conn.until_closed(1.0)
             result.bytes_sent += conn.bytes_sent
             result.record_close(conn, first=first)
             await asyncio.sleep(0.1)
