@@ -4,7 +4,7 @@ Each test runs one event loop: a Relay on port 0 (tests/relay_harness.py), a pub
 streaming 30 fps, three good viewers from 127.0.0.1, and one scenario of
 server/bench/adversary_scenarios.py attacking from 127.0.0.2 for a second or two. It
 asserts what the issue "no unauthenticated client can starve the viewers" asks: the
-viewers keep >= 80 % of the frames they got just before the attack, the attacker is
+viewers keep >= 60 % of the frames they got just before the attack, the attacker is
 closed (floods: within 1 s of crossing the limit) or refused, the refusal is counted,
 the relay's other sessions are untouched and nothing is logged at ERROR.
 """
@@ -54,7 +54,12 @@ FPS = 30.0
 GOOD_VIEWERS = 3
 BASELINE_S = 1.0
 ATTACK_S = 2.0
-KEEP_FRACTION = 0.8
+# The attacker, the relay and the good viewers share this process's one event loop and
+# 2 cores, so the attacker's own work shows in the viewers' frame counts: two fresh-clone
+# CI runs saw 22 of 30 frames (73 %) once each with nothing starving. A starved relay (the
+# HEADERS flood before the guard) left them 29 %. The 95 % criterion is the benchmark's
+# (`upcast bench adversary`: viewers, relay and attacker in separate processes).
+KEEP_FRACTION = 0.6
 CLOSE_WITHIN_S = 1.0
 # Tighter than the defaults so that a test waits a second, not five.
 TEST_GUARD = GuardLimits(connect_deadline_s=1.0)
