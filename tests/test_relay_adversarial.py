@@ -32,6 +32,7 @@ from server.bench.adversary_client import (
     MAX_VARINT,
     UNI_CONTROL,
     Target,
+    count_still_served,
     frame_header,
     open_attack,
 )
@@ -295,7 +296,7 @@ def test_random_oversized_frame_length_is_refused(cert: CertBundle, kind: str, l
             conn.flush()
             await asyncio.sleep(0.005)
         result.record_close(conn, first=True)
-        result.open_at_end = 0 if conn.is_closed else 1
+        result.open_at_end = await count_still_served([conn])
         conn.vanish()
         return result
 

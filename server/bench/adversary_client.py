@@ -19,7 +19,7 @@ import ipaddress
 import socket
 import ssl
 import time
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator, Callable, Sequence
 from contextlib import asynccontextmanager
 from dataclasses import dataclass, field
 from typing import Any
@@ -37,6 +37,7 @@ from aioquic.quic.configuration import QuicConfiguration
 from aioquic.quic.connection import QuicConnection
 from aioquic.quic.events import (
     ConnectionTerminated,
+    PingAcknowledged,
     ProtocolNegotiated,
     QuicEvent,
     StopSendingReceived,
@@ -145,6 +146,10 @@ class StreamAbort:
 
 WtDataSink = Callable[[int, bytes, bool], None]
 
+# A live relay acknowledges a PING within its max_ack_delay (25 ms) plus the loopback
+# round trip; the margin is for a loaded 2-core machine.
+PROBE_S = 0.5
+
 
 class AttackConnection(QuicConnectionProtocol):
     """One attacker connection. Everything it saw from the relay is recorded."""
@@ -165,6 +170,8 @@ class AttackConnection(QuicConnectionProtocol):
         self.vanished = False
         self.deaf = False  # drop every datagram: a viewer that never reads
         self.changed = asyncio.Event()
+        self._pings_acked: set[int] = set()
+        self._next_ping = 1
 
     # -- state -------------------------------------------------------------------
 
@@ -235,6 +242,23 @@ class AttackConnection(QuicConnectionProtocol):
             self._transport.close()
         self.changed.set()
 
+    async def relay_still_serving(self, timeout: float = PROBE_S) -> bool:
+        """Whether the relay still runs this connection: it acknowledges a PING.
+
+        Not closed is not the same thing: aioquic sends its CONNECTION_CLOSE once and
+        ignores every later packet (RFC 9000 10.2 allows that), so when that one datagram
+        is lost (a full socket buffer on a loaded machine) the relay has dropped the
+        connection while we would wait for our idle timeout to learn it.
+        """
+        if self.is_closed:
+            return False
+        uid = self._next_ping
+        self._next_ping += 1
+        self._quic.send_ping(uid)
+        self.flush()
+        await self.until(lambda: uid in self._pings_acked or self.is_closed, timeout)
+        return uid in self._pings_acked and not self.is_closed
+
     def close_politely(self) -> None:
         if not self.is_closed:
             self.close()
@@ -255,6 +279,8 @@ class AttackConnection(QuicConnectionProtocol):
             if self.closed is None:
                 # aioquic reports our own close the same way; the reason tells them apart.
                 self.closed = CloseRecord(now, event.error_code, event.reason_phrase, True)
+        elif isinstance(event, PingAcknowledged):
+            self._pings_acked.add(event.uid)
         elif isinstance(event, StreamReset):
             self.aborts.setdefault(event.stream_id, StreamAbort(now, event.error_code, False))
         elif isinstance(event, StopSendingReceived):
@@ -303,6 +329,13 @@ class AttackConnection(QuicConnectionProtocol):
             except TimeoutError:
                 pass
         return True
+
+
+async def count_still_served(conns: Sequence[AttackConnection]) -> int:
+    """How many of ``conns`` the relay still serves (probed together, not in turn)."""
+    open_ones = [c for c in conns if not c.is_closed]
+    answers = await asyncio.gather(*(c.relay_still_serving() for c in open_ones))
+    return sum(answers)
 
 
 def _decode(raw: list[tuple[bytes, bytes]]) -> dict[str, str]:

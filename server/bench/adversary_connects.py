@@ -54,7 +54,7 @@ async def slow_connect(ctx: AttackContext, duration_s: float) -> AttackResult:
         closes = [c.closed.at for c in conns if c.closed is not None]
         result.closed_at = max(closes) if len(closes) == len(conns) and closes else None
     finally:
-        result.finish(conns)
+        await result.finish(conns)
     return result
 
 
@@ -91,7 +91,7 @@ async def wrong_connects(ctx: AttackContext, duration_s: float) -> AttackResult:
             result.record_close(conn, first=False)
             await asyncio.sleep(0.1)
     finally:
-        result.finish(conns)
+        await result.finish(conns)
     return result
 
 
@@ -147,5 +147,5 @@ async def bad_token_attempts(ctx: AttackContext, duration_s: float) -> AttackRes
                     result.session_closes.append(session.close_code)
             await asyncio.sleep(0.1)
     finally:
-        result.finish(conns)
+        await result.finish(conns)
     return result

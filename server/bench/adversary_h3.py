@@ -121,7 +121,7 @@ async def flood(
             await conns[-1].until_closed(CLOSE_WAIT_S)
             result.record_close(conns[-1], first=len(conns) == 1)
     finally:
-        result.finish(conns)
+        await result.finish(conns)
     return result
 
 
@@ -215,7 +215,7 @@ async def garbage_streams(ctx: AttackContext, duration_s: float) -> AttackResult
         for conn in conns:
             result.record_close(conn, first=False)
     finally:
-        result.finish(conns)
+        await result.finish(conns)
     return result
 
 
@@ -249,7 +249,7 @@ async def qpack_string_length(ctx: AttackContext, duration_s: float) -> AttackRe
             result.record_close(conn, first=first)
             await asyncio.sleep(0.1)
     finally:
-        result.finish(conns)
+        await result.finish(conns)
     return result
 
 

@@ -15,6 +15,7 @@ from .adversary_client import (
     FRAME_HEADERS,
     MAX_VARINT,
     AttackConnection,
+    count_still_served,
     frame_header,
     open_attack,
 )
@@ -63,7 +64,7 @@ async def _each_session(
                 result.session_closes.append(session.close_code)
             await asyncio.sleep(pause_s)
     finally:
-        result.finish(conns)
+        await result.finish(conns)
     return result
 
 
@@ -186,7 +187,7 @@ async def many_request_streams(ctx: AttackContext, duration_s: float) -> AttackR
         await conn.until_closed(max(0.0, deadline - time.monotonic()))
         result.bytes_sent = conn.bytes_sent
         result.record_close(conn, first=True)
-        result.open_at_end = 0 if conn.is_closed else 1
+        result.open_at_end = await count_still_served([conn])
     finally:
         conn.vanish()
         result.ended = time.monotonic()
@@ -241,7 +242,7 @@ async def stalled_viewers(
             result.record_close(session.conn, first=False)
             if session.frames == frames and not session.conn.is_closed:
                 result.notes.append(f"a resumed viewer got no frame within {RESUME_S:g} s")
-        result.open_at_end = sum(1 for s in sessions if not s.conn.is_closed)
+        result.open_at_end = await count_still_served([s.conn for s in sessions])
     finally:
         for session in sessions:
             session.conn.vanish()

@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 
 from server.auth.keys import AuthKey
 
-from .adversary_client import AttackConnection, Target
+from .adversary_client import AttackConnection, Target, count_still_served
 
 GUARD = "upcast_relay_guard_refusals_total"
 UNAUTHORIZED = "upcast_relay_sessions_unauthorized_total"
@@ -68,10 +68,11 @@ class AttackResult:
         """When the first connection had sent ``count`` bytes (None: it never did)."""
         return next((t for t, n in self.sent_log if n >= count), None)
 
-    def finish(self, conns: Sequence[AttackConnection]) -> None:
-        """The attack is over: note which connections the relay left open, then drop them
-        all without a word (a vanished client costs the relay its idle timeout at most)."""
-        self.open_at_end = sum(1 for c in conns if not c.is_closed)
+    async def finish(self, conns: Sequence[AttackConnection]) -> None:
+        """The attack is over: note which connections the relay still serves, then drop
+        them all without a word (a vanished client costs the relay its idle timeout at
+        most)."""
+        self.open_at_end = await count_still_served(conns)
         for conn in conns:
             conn.vanish()
         self.ended = time.monotonic()
