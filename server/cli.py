@@ -8,6 +8,7 @@ import logging
 import sys
 from collections.abc import Callable, Sequence
 
+from server.commands.extras import missing_extra
 from server.commands.help_format import DefaultsHelpFormatter
 from server.ops.logging_setup import (
     ENV_VAR,
@@ -89,7 +90,20 @@ def _selected_command(argv: Sequence[str]) -> str | None:
 
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    parser = build_parser(_selected_command(argv))
+    command = _selected_command(argv)
+    try:
+        return _main(argv, command)
+    except ModuleNotFoundError as exc:
+        # A game command on the base install: name the extra, not a traceback.
+        message = missing_extra(exc, f"upcast {command}" if command else "upcast")
+        if message is None:
+            raise
+        print(message, file=sys.stderr)
+        return 2
+
+
+def _main(argv: list[str], command: str | None) -> int:
+    parser = build_parser(command)
     args = parser.parse_args(argv)
     try:
         log_format = args.log_format or default_log_format()
