@@ -20,6 +20,9 @@ from collections.abc import Callable
 UPSCALERS: tuple[str, ...] = (
     "bicubic",
     "bilinear",
+    "cv_area",
+    "cv_cubic",
+    "cv_lanczos4",
     "easu",
     "easu_rcas",
     "lanczos2",

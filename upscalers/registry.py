@@ -8,6 +8,7 @@ from typing import Any
 
 from upscalers.base import Upscaler
 from upscalers.cache.unet_cached import CachedUNetUpscaler
+from upscalers.cv_resample import CvAreaUpscaler, CvCubicUpscaler, CvLanczos4Upscaler
 from upscalers.fsr1 import EasuRcasUpscaler, EasuUpscaler
 from upscalers.lanczos import Lanczos2Upscaler
 from upscalers.neural.upscaler import UNetPlusPlusUpscaler, UNetUpscaler
@@ -21,6 +22,9 @@ _REGISTRY: dict[str, Callable[..., Upscaler]] = {
         BilinearUpscaler,
         BicubicUpscaler,
         Lanczos2Upscaler,
+        CvCubicUpscaler,
+        CvLanczos4Upscaler,
+        CvAreaUpscaler,
         EasuUpscaler,
         EasuRcasUpscaler,
         TemporalUpscaler,
