@@ -1,7 +1,8 @@
-"""One CPU thread budget for torch and for numba's parallel kernels."""
+"""One CPU thread budget for torch, numba's parallel kernels and OpenCV."""
 
 from __future__ import annotations
 
+import cv2
 import numba
 import torch
 
@@ -20,6 +21,9 @@ def limit_compiled_threads(threads: int) -> None:
 
 
 def set_cpu_threads(threads: int) -> None:
-    """torch's intra-op threads and (on this thread) numba's, both ``threads``."""
+    """torch's intra-op threads, (on this thread) numba's and OpenCV's pool (the
+    cv_* upscalers and bilinear's resize), all ``threads``: OpenCV unlimited takes
+    every core of the machine, whatever the worker was given."""
     torch.set_num_threads(threads)
     limit_compiled_threads(threads)
+    cv2.setNumThreads(max(1, threads))
