@@ -3,7 +3,8 @@
 ``easu_rcas@1.5`` is easu_rcas with RCAS at 1.5 stops (the sharpness sweep);
 ``easu_rcas+compiled`` is easu_rcas with its torch.compile path and
 ``easu_rcas+torch`` with its eager torch path (where the default on the CPU is a
-numba kernel), so one run times the implementations side by side.
+numba kernel, or for bilinear OpenCV's resize), so one run times the
+implementations side by side.
 """
 
 from __future__ import annotations
@@ -30,13 +31,13 @@ EAGER_TORCH = "+torch"
 # Label suffix -> (constructor option, value, what a method without the option lacks).
 _VARIANTS = {
     COMPILED: ("compile", True, "compiled path"),
-    EAGER_TORCH: ("backend", "torch", "numba kernel to swap for eager torch"),
+    EAGER_TORCH: ("backend", "torch", "numba kernel or library resampler to swap for eager torch"),
 }
 
 
 def parse_method(label: str) -> MethodSpec:
     """``NAME[@SHARPNESS][+compiled|+torch]`` (RCAS stops; torch.compile path; eager
-    torch instead of the numba CPU kernel); unknown names list the allowed ones."""
+    torch instead of the numba CPU kernel or OpenCV); unknown names list the allowed ones."""
     base, variant = label, None
     for suffix in _VARIANTS:
         if label.endswith(suffix):
@@ -70,7 +71,7 @@ def compiled_variants(labels: list[str]) -> list[str]:
 
 
 def eager_torch_variants(labels: list[str]) -> list[str]:
-    """``label+torch`` for every method in ``labels`` that has a numba CPU kernel."""
+    """``label+torch`` for every method in ``labels`` whose CPU default is not torch."""
     return _variants(labels, EAGER_TORCH)
 
 

@@ -14,7 +14,7 @@ with like and temporal methods see the frames in order. ``--compile`` adds
 ``METHOD+compiled`` next to each method with a torch.compile path, so eager and
 compiled are timed in the same run; their compile time shows as ``warmup_ms``.
 ``--eager-torch`` likewise adds ``METHOD+torch``, the eager torch path of a method
-whose CPU default is a numba kernel.
+whose CPU default is a numba kernel or a library resampler (bilinear's OpenCV).
 Quality is measured on the frames after a warm-up that lets temporal history
 build up; FLIP, which costs seconds
 per frame on a CPU, is computed on the last ``--flip-frames`` of them.
@@ -56,7 +56,18 @@ from upscalers.output import to_uint8
 # first allocates; a +compiled method compiles on its first call with history (the
 # second for temporal), a fresh geometry through inductor's disk cache.
 WARMUP_CALLS = 2
-DEFAULT_METHODS = ("bilinear", "bicubic", "lanczos2", "easu", "easu_rcas", "temporal")
+# The cv_* methods are OpenCV's resize: library baselines beside the project's own.
+DEFAULT_METHODS = (
+    "bilinear",
+    "bicubic",
+    "lanczos2",
+    "cv_cubic",
+    "cv_lanczos4",
+    "cv_area",
+    "easu",
+    "easu_rcas",
+    "temporal",
+)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -90,8 +101,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--eager-torch",
         action="store_true",
-        help="add METHOD+torch (eager torch instead of the numba CPU kernel) for every "
-        "method that has a numba kernel",
+        help="add METHOD+torch (eager torch instead of the numba CPU kernel or OpenCV) "
+        "for every method whose CPU default is not torch",
     )
 
 
