@@ -16,13 +16,11 @@ RUN npm run build
 FROM python:3.11-slim-bookworm
 ENV PYTHONUNBUFFERED=1 PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1
 WORKDIR /app
-# The relay never imports torch, but the package depends on it: take the small CPU
-# wheel instead of the CUDA one PyPI would pick.
-ARG TORCH_INDEX_URL=https://download.pytorch.org/whl/cpu
-RUN pip install --index-url "${TORCH_INDEX_URL}" torch==2.13.0
 COPY pyproject.toml README.md ./
 COPY server/ server/
 COPY upscalers/ upscalers/
+# The base install only, without the extra `game`: the relay and `upcast token` import
+# no torch, numba or scikit-image (tests/test_base_install.py runs them without).
 RUN pip install .
 COPY --from=web /src/client_web/dist/ /app/client_web/dist/
 COPY deploy/healthcheck.py /usr/local/bin/upcast-healthcheck

@@ -17,7 +17,8 @@ RUN pip install --index-url "${TORCH_INDEX_URL}" torch==2.13.0
 COPY pyproject.toml README.md ./
 COPY server/ server/
 COPY upscalers/ upscalers/
-RUN pip install .
+# With the extra `game` (the game and the upscaler worker); torch is the one above.
+RUN pip install ".[game]"
 COPY deploy/healthcheck.py /usr/local/bin/upcast-healthcheck
 RUN chmod 0755 /usr/local/bin/upcast-healthcheck && useradd --system --uid 10001 upcast
 USER upcast

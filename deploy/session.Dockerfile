@@ -4,14 +4,16 @@
 FROM python:3.11-slim-bookworm
 ENV PYTHONUNBUFFERED=1 PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1
 WORKDIR /app
-# CPU torch (pyproject pins torch==2.13.0; from PyPI that pin pulls CUDA wheels).
+# CPU torch (pyproject's extra `game` pins torch==2.13.0; from PyPI that pin pulls
+# CUDA wheels).
 ARG TORCH_INDEX_URL=https://download.pytorch.org/whl/cpu
 RUN pip install --index-url "${TORCH_INDEX_URL}" torch==2.13.0
 COPY pyproject.toml README.md ./
 COPY server/ server/
 COPY upscalers/ upscalers/
-# PyAV's wheel bundles FFmpeg with libx264: no system codec packages needed.
-RUN pip install .
+# With the extra `game` (torch, numba, ...: the game and the upscaler worker). PyAV's
+# wheel bundles FFmpeg with libx264: no system codec packages needed.
+RUN pip install ".[game]"
 # Compile the numba CPU kernels into their cache now (as root: site-packages is
 # read-only for the upcast user), not on the first frame of a stream.
 RUN python -m upscalers.warm_kernels

@@ -59,6 +59,20 @@ def test_the_game_modules_are_the_extra_s_packages() -> None:
     assert not base & game
 
 
+def test_the_readme_says_which_install_brings_each_package() -> None:
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    wanted = {_requirement_name(r): "base" for r in project["dependencies"]}
+    for extra, requirements in project["optional-dependencies"].items():
+        wanted |= {_requirement_name(r): extra for r in requirements}
+    readme = (ROOT / "README.md").read_text()
+    table = readme[readme.index("## Dependencies and why") :].split("\n\n")[2]
+    said = {}
+    for row in table.splitlines()[2:]:
+        packages, install = (cell.strip() for cell in row.split("|")[1:3])
+        said |= {p.split()[0].lower(): install for p in packages.split(",")}
+    assert said == wanted
+
+
 @pytest.mark.parametrize("module", sorted(GAME_MODULES))
 def test_each_game_module_is_refused(module: str) -> None:
     # A module loaded before the refusal (by a .pth file, say) would slip through.

@@ -339,6 +339,28 @@ def test_the_relay_serves_the_web_client_its_image_builds() -> None:
     assert flag(cmd, "--web-root") == web_root
 
 
+def _project_installs(path: Path) -> list[str]:
+    """What each ``pip install`` of the project itself installs: ``.`` or ``.[extra]``."""
+    found = []
+    for keyword, arguments in dockerfile_instructions(path):
+        words = shlex.split(arguments) if keyword == "RUN" else []
+        if words[:2] == ["pip", "install"]:
+            found += [w for w in words[2:] if w == "." or w.startswith(".[")]
+    return found
+
+
+@pytest.mark.parametrize(
+    ("name", "install"),
+    [("relay", "."), ("session", ".[game]"), ("session-cuda", ".[game]")],
+)
+def test_each_image_installs_the_extra_its_commands_need(name: str, install: str) -> None:
+    # The relay image runs relay and token: the base install, no torch at all.
+    path = ROOT / "deploy" / f"{name}.Dockerfile"
+    assert _project_installs(path) == [install]
+    if install == ".":
+        assert "torch" not in " ".join(a for k, a in dockerfile_instructions(path) if k == "RUN")
+
+
 # -- health checks are real routes ---------------------------------------------------
 
 
