@@ -4,7 +4,8 @@ loadtest and the synthetic publisher, and a game command on it names the extra.
 Every process here runs with the extra's modules refused at import
 (``tests/without_game/sitecustomize.py``), as on ``pip install upcast`` without
 ``[game]``: a relay, a synthetic publisher and load-test viewers stream frames
-through real QUIC, and the relay-side commands import all they name.
+through real QUIC, ``upcast control`` sends a request through that relay, and the
+relay-side commands import all they name.
 """
 
 from __future__ import annotations
@@ -66,7 +67,7 @@ def test_the_readme_says_which_install_brings_each_package() -> None:
         wanted |= {_requirement_name(r): extra for r in requirements}
     readme = (ROOT / "README.md").read_text()
     table = readme[readme.index("## Dependencies and why") :].split("\n\n")[2]
-    said = {}
+    said: dict[str, str] = {}
     for row in table.splitlines()[2:]:
         packages, install = (cell.strip() for cell in row.split("|")[1:3])
         said |= {p.split()[0].lower(): install for p in packages.split(",")}
@@ -137,8 +138,17 @@ def test_relay_synthetic_publisher_and_viewers_stream_without_the_game_extra(
             "--json", str(report_path), "--quiet",
             timeout=120.0,
         )  # fmt: skip
+        # upcast control checks its request here and sends it through the relay; no
+        # session is left to answer it (the synthetic publisher has none).
+        control = ["-m", "server.cli", "control", "--relay", f"http://127.0.0.1:{endpoint.port}/"]
+        control += ["--cert-sha256", endpoint.cert_sha256, "--broadcast", "game"]
+        refused = _python(*control, "--cache-policy", "delta@-1")
+        unanswered = _python(*control, "--cache-policy", "delta_l", "--timeout", "1")
     finally:
         relay.stop()
+    assert refused.returncode == 2 and "cache_policy" in refused.stderr, refused.stderr
+    assert unanswered.returncode == 1, unanswered.stderr
+    assert "broadcast 'game' has no status track" in unanswered.stderr, unanswered.stderr
     assert result.returncode == 0, result.stdout + result.stderr
     assert "ModuleNotFoundError" not in result.stderr
     cases = {case["name"]: case for case in json.loads(report_path.read_text())["cases"]}
