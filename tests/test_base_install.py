@@ -28,6 +28,8 @@ from server.relay.process import RelayProcess
 ROOT = Path(__file__).resolve().parents[1]
 WITHOUT_GAME = ROOT / "tests" / "without_game"
 BASE_COMMANDS = ("relay", "token", "control", "loadtest")
+# The packages the relay side is made of: every module in them imports on the base.
+BASE_PACKAGES = ("auth", "frames", "loadtest", "media", "moq", "quic", "relay")
 
 
 def _base_env() -> dict[str, str]:
@@ -100,6 +102,16 @@ def test_a_base_command_imports_all_it_names(command: str) -> None:
     result = _python("-c", "; ".join(f"import {m}" for m in modules))
     assert result.returncode == 0, result.stderr
     result = _python("-m", "server.cli", command, "--help")
+    assert result.returncode == 0, result.stderr
+
+
+def test_every_module_of_the_relay_side_packages_imports_on_the_base() -> None:
+    modules = [
+        ".".join(path.relative_to(ROOT).with_suffix("").parts).removesuffix(".__init__")
+        for package in BASE_PACKAGES
+        for path in sorted((ROOT / "server" / package).rglob("*.py"))
+    ]
+    result = _python("-c", "; ".join(f"import {m}" for m in modules))
     assert result.returncode == 0, result.stderr
 
 
