@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from pathlib import Path
 from typing import Any
 
 import cv2
@@ -184,7 +185,7 @@ def test_sequence_jitter_gathers_detail_a_still_camera_cannot() -> None:
 def test_sequence_of_a_spatial_method_is_each_image_alone() -> None:
     rng = np.random.default_rng(3)
     frames = [rng.integers(0, 256, (7, 5, 3), dtype=np.uint8) for _ in range(3)]
-    outs = list(upscale_sequence(iter(frames), 3, "easu_rcas", jitter=JITTER[:3]))
+    outs = list(upscale_sequence(iter(frames), 3, "easu_rcas"))
     for frame, out in zip(frames, outs, strict=True):
         assert np.array_equal(out, upscale_image(frame, 3, "easu_rcas"))
 
@@ -229,3 +230,20 @@ def test_importing_upscalers_does_not_import_torch() -> None:
         "else:\n    raise SystemExit('no AttributeError')\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True, timeout=60)
+
+
+def test_the_readme_example_runs_as_written(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from PIL import Image
+
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    section = readme.split("## Upscale your own images", 1)[1]
+    example = section.split("```python\n", 1)[1].split("```", 1)[0]
+    assert len(example.strip().splitlines()) == 5
+    monkeypatch.chdir(tmp_path)
+    Image.fromarray(np.random.default_rng(5).integers(0, 256, (9, 13, 3), np.uint8)).save(
+        "shot.png"
+    )
+    exec(compile(example, "README.md", "exec"), {})
+    assert Image.open("shot_2x.png").size == (26, 18)

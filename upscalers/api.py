@@ -88,7 +88,7 @@ def upscale_sequence(
     - ``depth``: float (H, W), NDC z in [0, 1] (1 is far); sharpens motion edges and
       finds newly uncovered surfaces. Without it, one depth everywhere.
 
-    Spatial methods ignore all three. Non-finite depth or motion is replaced as in
+    Spatial methods upscale each frame alone. Non-finite depth or motion is replaced as in
     the stream (``upscalers/sanitize.py``). The method and ``size_or_scale`` are
     checked at the call; each frame when its turn comes (errors name the frame).
     """
