@@ -11,7 +11,7 @@ import torch.nn.functional as F
 from server.frames.frame import Camera, FrameMeta, RenderFrame, Size
 from upscalers import names, registry
 from upscalers.output import to_uint8
-from upscalers.resample import BilinearUpscaler, color_as_nchw
+from upscalers.resample import BilinearUpscaler, NearestUpscaler, color_as_nchw
 
 CV_METHODS = {
     "cv_cubic": cv2.INTER_CUBIC,
@@ -91,3 +91,37 @@ def test_bilinear_opencv_path_matches_torch_within_one_level(render: Size, displ
 def test_bilinear_refuses_an_unknown_backend() -> None:
     with pytest.raises(ValueError, match="backend must be one of auto, torch"):
         registry.create("bilinear", backend="numba")
+
+
+@pytest.mark.parametrize(
+    ("render", "display", "library"),
+    [(Size(640, 360), Size(1280, 720), True), (Size(427, 240), Size(1281, 720), True),
+     (Size(37, 23), Size(296, 46), True), (Size(1, 1), Size(8, 3), True),
+     (Size(5, 3), Size(5, 3), True), (Size(853, 480), Size(1280, 720), False),
+     (Size(10, 10), Size(90, 20), False), (Size(37, 23), Size(111, 53), False)],
+)  # fmt: skip
+def test_nearest_takes_opencv_only_at_whole_multiples_and_gives_torch_s_bits(
+    render: Size, display: Size, library: bool
+) -> None:
+    """1.5x (853 -> 1280) is where OpenCV breaks ties the other way: torch keeps it; 9x
+    is beyond the factors checked."""
+    nearest = registry.create("nearest")
+    assert isinstance(nearest, NearestUpscaler)
+    assert nearest.library_serves(render, display) is library
+    frame = make_frame(render, seed=4)
+    out = to_uint8(nearest.upscale(frame, display))
+    reference = F.interpolate(
+        color_as_nchw(frame.color), size=(display.height, display.width), mode="nearest-exact"
+    )
+    assert np.array_equal(out, np.asarray(reference[0].permute(1, 2, 0)))
+    torch_path = registry.create("nearest", backend="torch").upscale(frame, display)
+    assert np.array_equal(to_uint8(torch_path), out)
+
+
+def test_opencv_exact_nearest_does_break_1_5x_ties_differently() -> None:
+    """Why nearest keeps torch off whole multiples (if this starts to pass as equal, the
+    condition in NearestUpscaler.library_serves can widen)."""
+    frame = make_frame(Size(853, 480), seed=5)
+    ours = to_uint8(registry.create("nearest").upscale(frame, Size(1280, 720)))
+    theirs = cv2.resize(frame.color, (1280, 720), interpolation=cv2.INTER_NEAREST_EXACT)
+    assert not np.array_equal(ours, theirs)

@@ -4,14 +4,22 @@ They run torch's separable uint8 resampler on the slot's HWC bytes (which are
 already a channels-last NCHW tensor, so no transpose copy): 3-4x faster than the
 float path on one core, and what a video pipeline would use.
 
-Bilinear runs OpenCV's ``resize`` instead by default: the same images (within one
-level everywhere, borders included: both clamp the sample position to the edge
-pixel centre, and OpenCV's 11-bit fixed-point weights round differently) in
-about a quarter of the time (0.6 against 2.4 ms at 640x360 -> 1280x720 on 2
-cores). Nearest and bicubic stay on torch: OpenCV's cubic is a = -0.75 (up to
-16 levels from Catmull-Rom on a game frame), and its exact nearest breaks the
-ties of a 1.5x scale the other way (a whole pixel off in a third of the rows).
-These upscalers read the slot on the CPU, so there is no CUDA path to keep.
+Where OpenCV's ``resize`` gives the same images it runs instead (``upcast bench
+resample`` compares them on game frames and noise, borders included):
+
+- bilinear, always: within one level everywhere (both clamp the sample position
+  to the edge pixel centre; OpenCV's 11-bit fixed-point weights round
+  differently), 3-4x faster at 1.5x, 2x and 3x to 1280x720 on 2 cores;
+- nearest, when the display size is a whole multiple (up to 8) of the render
+  size on both axes: the same bits (no output centre falls on an input pixel edge, so
+  no tie to break), 10-16x faster. At other scales OpenCV's exact nearest
+  breaks the ties the other way (at 1.5x a whole pixel off in a third of the
+  rows), so torch keeps them.
+
+Bicubic stays on torch: OpenCV's cubic is a = -0.75, 16 levels and more from
+Catmull-Rom on a game frame (it is ``cv_cubic``, a method of its own).
+``backend="torch"`` keeps F.interpolate for all sizes. These upscalers read the
+slot on the CPU, so there is no CUDA path to keep.
 """
 
 from __future__ import annotations
@@ -32,6 +40,7 @@ from upscalers.cv_resample import cv_resize
 # keeps F.interpolate (the reference, and what the eval's METHOD+torch times).
 ResampleBackend = Literal["auto", "torch"]
 RESAMPLE_BACKENDS: tuple[ResampleBackend, ...] = ("auto", "torch")
+MAX_NEAREST_FACTOR = 8
 
 
 def color_as_nchw(color: np.ndarray) -> torch.Tensor:
@@ -60,16 +69,10 @@ class _TorchResampler(Upscaler):
         return out[0]
 
 
-class NearestUpscaler(_TorchResampler):
-    name = "nearest"
-    mode = "nearest-exact"
+class _LibraryWhereSame(_TorchResampler):
+    """Runs OpenCV's ``interpolation`` where it gives torch's images, else torch."""
 
-
-class BilinearUpscaler(_TorchResampler):
-    """Bilinear with half-pixel centres; OpenCV's resize unless ``backend="torch"``."""
-
-    name = "bilinear"
-    mode = "bilinear"
+    interpolation: ClassVar[int]
 
     def __init__(self, backend: ResampleBackend = "auto") -> None:
         if backend not in RESAMPLE_BACKENDS:
@@ -78,10 +81,39 @@ class BilinearUpscaler(_TorchResampler):
             )
         self.backend: str = "opencv" if backend == "auto" else "torch"
 
+    def library_serves(self, render: Size, display: Size) -> bool:
+        return True
+
     def upscale(self, frame: RenderFrame, display_size: Size) -> torch.Tensor:
-        if self.backend == "opencv":
-            return cv_resize(frame.color, display_size, cv2.INTER_LINEAR)
+        if self.backend == "opencv" and self.library_serves(frame.size, display_size):
+            return cv_resize(frame.color, display_size, self.interpolation)
         return super().upscale(frame, display_size)
+
+
+class NearestUpscaler(_LibraryWhereSame):
+    """Nearest with half-pixel centres (torch's nearest-exact); OpenCV's exact nearest
+    at whole-multiple scales unless ``backend="torch"``."""
+
+    name = "nearest"
+    mode = "nearest-exact"
+    interpolation = cv2.INTER_NEAREST_EXACT
+
+    def library_serves(self, render: Size, display: Size) -> bool:
+        # Checked for every width 1..4096 and every third height to 2048 at 1x to 8x: the
+        # same bits. Larger factors are left to torch: OpenCV's 16-bit fixed-point step
+        # drifts with the output coordinate, and 8x is where the check stopped.
+        return all(
+            big % small == 0 and 1 <= big // small <= MAX_NEAREST_FACTOR
+            for big, small in zip(display, render, strict=True)
+        )
+
+
+class BilinearUpscaler(_LibraryWhereSame):
+    """Bilinear with half-pixel centres; OpenCV's resize unless ``backend="torch"``."""
+
+    name = "bilinear"
+    mode = "bilinear"
+    interpolation = cv2.INTER_LINEAR
 
 
 class BicubicUpscaler(_TorchResampler):
