@@ -17,6 +17,7 @@ BENCHMARKS: dict[str, str] = {
     "compile_start": "upscaler compile=True at a worker start: inductor cache cold and warm",
     "reframe": "layer caching on the neural upscaler: policies, levels, speedup against FLIP",
     "adversary": "relay under attack scenarios: good viewers' fps, relay CPU and RSS, refusals",
+    "resample": "our plain resamplers against OpenCV's resize: level difference and time",
 }
 
 
