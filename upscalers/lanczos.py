@@ -27,12 +27,15 @@ def lanczos(x: torch.Tensor, a: int = LOBES) -> torch.Tensor:
     return torch.sinc(x) * torch.sinc(x / a) * inside
 
 
-def axis_weights(n_in: int, n_out: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """(n_out, K) clamped input indices and normalized weights along one axis."""
+def axis_weights(n_in: int, n_out: int, offset: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """(n_out, K) clamped input indices and normalized weights along one axis.
+
+    ``offset``: where the input samples were taken, in input pixels from their centres
+    (a jittered render: sample i sits at i + 0.5 + offset)."""
     scale = n_in / n_out
     stretch = max(scale, 1.0)
     support = LOBES * stretch
-    centre = (torch.arange(n_out, dtype=torch.float64) + 0.5) * scale - 0.5
+    centre = (torch.arange(n_out, dtype=torch.float64) + 0.5) * scale - 0.5 - offset
     first = torch.floor(centre - support) + 1
     taps = math.ceil(2 * support)  # integers inside the open interval (centre -+ support)
     pos = first.unsqueeze(1) + torch.arange(taps, dtype=torch.float64)
@@ -60,14 +63,7 @@ class Lanczos2Upscaler(Upscaler):
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         key = (in_hw, out_hw, device)
         if self._axes is None or self._key != key:
-            ix, wx = axis_weights(in_hw[1], out_hw[1])
-            iy, wy = axis_weights(in_hw[0], out_hw[0])
-            self._axes = (
-                ix.t().contiguous().to(device),
-                wx.t().to(self.dtype).unsqueeze(2).contiguous().to(device),  # (K, W_out, 1)
-                iy.t().contiguous().to(device),
-                wy.t().to(self.dtype).unsqueeze(2).contiguous().to(device),  # (K, H_out, 1)
-            )
+            self._axes = plan_axes(in_hw, out_hw, device, self.dtype)
             self._key = key
         return self._axes
 
@@ -77,18 +73,45 @@ class Lanczos2Upscaler(Upscaler):
 
     def resample(self, image: torch.Tensor, out_hw: tuple[int, int]) -> torch.Tensor:
         """(3, H, W) uint8 or float [0, 1] -> (3, H_out, W_out) float in [0, 1]."""
-        c, h, w = image.shape
-        ho, wo = out_hw
-        ix, wx, iy, wy = self._plan((h, w), out_hw, image.device)
-        # Columns on the transposed image, so that every tap gathers whole rows.
-        src = image.transpose(1, 2).to(self.dtype, memory_format=torch.contiguous_format)
+        ix, wx, iy, wy = self._plan((image.shape[1], image.shape[2]), out_hw, image.device)
+        src = image.to(self.dtype)
         if image.dtype == torch.uint8:
             src.div_(255.0)
-        across = torch.zeros((c, wo, h), dtype=self.dtype, device=image.device)
-        for k in range(ix.shape[0]):
-            across.addcmul_(src.index_select(1, ix[k]), wx[k])
-        rows = across.transpose(1, 2).contiguous()  # (C, H, W_out)
-        out = torch.zeros((c, ho, wo), dtype=self.dtype, device=image.device)
-        for k in range(iy.shape[0]):
-            out.addcmul_(rows.index_select(1, iy[k]), wy[k])
-        return out.clamp_(0.0, 1.0)
+        return apply_axes(src, ix, wx, iy, wy).clamp_(0.0, 1.0)
+
+
+def plan_axes(
+    in_hw: tuple[int, int],
+    out_hw: tuple[int, int],
+    device: torch.device,
+    dtype: torch.dtype,
+    offset: tuple[float, float] = (0.0, 0.0),
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The tap tables ``apply_axes`` takes; ``offset`` (x, y) as in ``axis_weights``."""
+    ix, wx = axis_weights(in_hw[1], out_hw[1], offset[0])
+    iy, wy = axis_weights(in_hw[0], out_hw[0], offset[1])
+    return (
+        ix.t().contiguous().to(device),
+        wx.t().to(dtype).unsqueeze(2).contiguous().to(device),  # (K, W_out, 1)
+        iy.t().contiguous().to(device),
+        wy.t().to(dtype).unsqueeze(2).contiguous().to(device),  # (K, H_out, 1)
+    )
+
+
+def apply_axes(
+    planes: torch.Tensor, ix: torch.Tensor, wx: torch.Tensor, iy: torch.Tensor, wy: torch.Tensor
+) -> torch.Tensor:
+    """(C, H, W) float planes through the separable tables: (C, H_out, W_out), not clamped
+    (the negative lobes overshoot at edges; the caller decides what range is valid)."""
+    c, h, _ = planes.shape
+    wo, ho = ix.shape[1], iy.shape[1]
+    # Columns on the transposed image, so that every tap gathers whole rows.
+    src = planes.transpose(1, 2).contiguous()
+    across = torch.zeros((c, wo, h), dtype=planes.dtype, device=planes.device)
+    for k in range(ix.shape[0]):
+        across.addcmul_(src.index_select(1, ix[k]), wx[k])
+    rows = across.transpose(1, 2).contiguous()  # (C, H, W_out)
+    out = torch.zeros((c, ho, wo), dtype=planes.dtype, device=planes.device)
+    for k in range(iy.shape[0]):
+        out.addcmul_(rows.index_select(1, iy[k]), wy[k])
+    return out

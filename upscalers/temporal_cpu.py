@@ -165,9 +165,17 @@ class HostTemporal:
         (``ops.jitter``, ``ops.near_far``): (3, H, W) uint8 sRGB, a view of an (H, W, 3)
         array (the ring U layout) that no result the caller still holds shares."""
         phase = self._phase(jit)
-        moving = self._render_stage(frame, jit, nf, phase.mean_weight)
+        stored = phase.mean_weight
         if not self._has_history:
-            mode = kernels.PREV_CURRENT
+            stored = np.float32(stored - self.params.reset_weight)  # as _store_weight
+        moving = self._render_stage(frame, jit, nf, stored)
+        if not self._has_history:
+            # A reset: the history starts as the frame's own spatial reconstruction (the
+            # torch path's helper; one frame in many, so its speed matters little).
+            raw = torch.from_numpy(self._buf.raw[:, :, 1:-1])
+            spatial = ops.spatial_reconstruction(raw, self.display, jit)
+            np.copyto(self._history, spatial.numpy())
+            mode = kernels.PREV_IN_PLACE
         elif moving == 0:
             mode = kernels.PREV_IN_PLACE  # nothing moved: the fetch would be the identity
         else:
@@ -218,14 +226,15 @@ class HostTemporal:
         pjx, pjy = self._prev_jitter
         moving: int = kernels.render_reproject(
             b.raw, float(p.presharpen), b.lin, b.motion, b.mask, self._prev_far, self._weight,
-            self._has_history, np.float32(0.5 + jit[0]), np.float32(0.5 + jit[1]),
+            self._has_history, np.float32(p.reset_weight), np.float32(0.5 + jit[0]),
+            np.float32(0.5 + jit[1]),
             np.float32(0.5 + pjx), np.float32(0.5 + pjy), np.float32(1.0 + p.depth_tolerance),
             np.float32(p.dynamic_keep - 1.0), np.float32(p.max_weight), b.ycc, b.dilated,
             b.prev_weight,
         )  # fmt: skip
         self._prev_jitter = jit
         kernels.render_finish(
-            b.ycc, b.lin, b.prev_weight, mean_weight, np.float32(p.max_weight), b.lo, b.hi,
+            b.raw, b.lin, b.prev_weight, mean_weight, np.float32(p.max_weight), b.lo, b.hi,
             self._prev_far, self._weight,
         )  # fmt: skip
         return moving

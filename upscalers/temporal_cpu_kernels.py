@@ -55,7 +55,7 @@ DISPLAY_BLOCK = 36  # display rows per parallel work item (each fetches 2 halo r
 # How the display stage gets the history pixel ``prev`` (temporal.TemporalUpscaler.upscale).
 PREV_CURRENT = 0  # no history: the current frame's reconstruction
 PREV_IN_PLACE = 1  # nothing moved: the history pixel itself (NaN -> 0, Inf -> float32 max)
-PREV_FETCH = 2  # bilinear fetch at p + motion (non-finite -> 0), Catmull-Rom luma optional
+PREV_FETCH = 2  # bilinear fetch at p + motion (non-finite -> 0), Catmull-Rom optional
 
 _F32_MAX = 3.4028234663852886e38
 
@@ -164,14 +164,14 @@ def _bilerp(top_l, top_r, bottom_l, bottom_r, fx, fy):
 
 @njit(inline="always", **_JIT)
 def _blend(prev, cur, lo, hi, alpha):
-    """Clamp to the box, then torch.lerp towards the current frame."""
-    return _lerp(min(max(prev, lo), hi), cur, alpha)
+    """Clamp both to the box, then torch.lerp towards the current frame."""
+    return _lerp(min(max(prev, lo), hi), min(max(cur, lo), hi), alpha)
 
 
 @njit(inline="always", **_JIT)
-def _catmull_rom(luma, left, right, up, down, mx, my, scale, k_cr):
+def _catmull_rom(value, left, right, up, down, mx, my, scale, k_cr):
     """``_sharpen_fetch`` at one pixel: per axis c = -gain t (1 - t) / 2 of the motion's
-    sub-pixel fraction t, then luma (1 - 2 cx - 2 cy) + cx (left + right) + cy (up +
+    sub-pixel fraction t, then value (1 - 2 cx - 2 cy) + cx (left + right) + cy (up +
     down), in the torch path's order."""
     one = F32(1.0)
     tx = mx * scale
@@ -181,7 +181,7 @@ def _catmull_rom(luma, left, right, up, down, mx, my, scale, k_cr):
     cx = tx * (one - tx) * k_cr
     cy = ty * (one - ty) * k_cr
     centre = (cx + cy) * F32(-2.0) + one
-    return fma32(up + down, cy, fma32(left + right, cx, luma * centre))
+    return fma32(up + down, cy, fma32(left + right, cx, value * centre))
 
 
 @njit(inline="always", **_JIT)
@@ -254,8 +254,8 @@ def render_inputs(
 
 @njit(parallel=True, **_JIT)
 def render_reproject(
-    raw, amount, lin, mvs, mask_f, prev_far, weight, has_history, x_off, y_off, px_off, py_off,
-    far_scale, keep_minus_one, max_weight, ycc, mvd, prev_weight,
+    raw, amount, lin, mvs, mask_f, prev_far, weight, has_history, reset_weight, x_off, y_off,
+    px_off, py_off, far_scale, keep_minus_one, max_weight, ycc, mvd, prev_weight,
 ):  # fmt: skip
     """Presharpened colour, dilated motion and the trusted accumulated weight (render size).
 
@@ -263,9 +263,9 @@ def render_reproject(
     ``mvd`` (2, h, w) the motion of the closest depth of the 3x3 neighbourhood
     (``ops.closest_3x3``: rows first, then the column; on ties the centre, then the
     left / upper one); ``prev_weight`` the last frame's accumulated ``weight`` at the
-    reprojected position times the trust (``TemporalUpscaler._reproject_weight``; 0
-    everywhere without history). ``x_off`` = 0.5 + jitter x, ``px_off`` the same of the
-    previous frame. Returns how many pixels have non-zero dilated motion.
+    reprojected position times the trust (``TemporalUpscaler._reproject_weight``;
+    ``reset_weight`` everywhere without history). ``x_off`` = 0.5 + jitter x, ``px_off``
+    the same of the previous frame. Returns how many pixels have non-zero dilated motion.
     """
     h, w = prev_weight.shape
     sharpen = amount > 0.0
@@ -336,7 +336,7 @@ def render_reproject(
             pw_row = prev_weight[y]
             if not has_history:
                 for x in range(w):
-                    pw_row[x] = zero
+                    pw_row[x] = reset_weight
                 continue
             for x in range(w):
                 k = U64(k_row[x])  # unsigned: numba skips its negative-index wrap
@@ -445,7 +445,7 @@ def _fetch_row(
     runs, dst,
 ):  # fmt: skip
     """A display row of the history fetched at p + motion into dst (3, W + 2) (column X at
-    X + 1, luma edges replicated into the pad columns).
+    X + 1, edges replicated into the pad columns).
 
     Grid x of pixel X: mv_up[0, X] step_x + gx_base[X], plus gx_off[X] (``_fetch_history``
     of an integer scale adds the motion to the grid of sub-pixel (0, 0) of the block,
@@ -500,9 +500,10 @@ def _fetch_row(
                 hist_flat, U64(plane), U64(top[p]), U64(bottom[p]), U64(right[p]), nw_[p],
                 ne_[p], sw_[p], se_[p], dst, p + 1,
             )  # fmt: skip
-    # Luma pads: the Catmull-Rom neighbours of the edge pixels are themselves.
-    dst[0, 0] = dst[0, 1]
-    dst[0, big_w + 1] = dst[0, big_w]
+    # Pads: the Catmull-Rom neighbours of the edge pixels are themselves.
+    for c in range(3):
+        dst[c, 0] = dst[c, 1]
+        dst[c, big_w + 1] = dst[c, big_w]
 
 
 @njit(**_JIT)
@@ -519,7 +520,7 @@ def _history_row(hist, y, dst):
 @njit(**_JIT)
 def _to_planar(disp, scale, dst):
     """A display-order row (3, W + 2) (``_fetch_row``) as planar sub-pixel rows dst (3, S,
-    w + 2): sub-pixel b of render column j at [:, b, j + 1]. The luma pads are the
+    w + 2): sub-pixel b of render column j at [:, b, j + 1]. The pads are the
     display neighbours of the edge pixels: left of sub-pixel 0 is sub-pixel S - 1 of the
     column before, right of S - 1 is 0 of the column after; at the image edges, the
     edge pixel itself (edges replicated)."""
@@ -530,8 +531,9 @@ def _to_planar(disp, scale, dst):
             out = dst[c, b, 1:]
             for j in range(w):
                 out[j] = src[j * scale + b]
-    dst[0, scale - 1, 0] = dst[0, 0, 1]
-    dst[0, 0, w + 1] = dst[0, scale - 1, w]
+    for c in range(3):
+        dst[c, scale - 1, 0] = dst[c, 0, 1]
+        dst[c, 0, w + 1] = dst[c, scale - 1, w]
 
 
 @njit(**_JIT)
@@ -542,7 +544,7 @@ def _blend_row_blocked(
     """The new history of one display row (sub-pixel row a of render row i) into ``new``
     (3, S, w), planar (sub-pixel b of render column j at [:, b, j]); ``alpha`` (w,) is
     scratch. ``source``: 0 = no history, 1 = ``mid`` as it is, 2 = ``mid`` with
-    ``_sharpen_fetch``'s Catmull-Rom correction of luma (``up``, ``down``: the fetched
+    ``_sharpen_fetch``'s Catmull-Rom correction (``up``, ``down``: the fetched
     rows above and below), all three laid out by ``_to_planar``. The current frame is
     ``ops.reconstruct_blocked`` from the padded rows r0 and r1 of ``ycc``."""
     n_sub, w = new.shape[1], new.shape[2]
@@ -564,13 +566,13 @@ def _blend_row_blocked(
                 for j in range(w):
                     cur = _bilerp(top[j], top[j + 1], bottom[j], bottom[j + 1], fx, fy)
                     new_c[j] = _blend(cur, cur, lo_c[j], hi_c[j], alpha[j])
-            elif source == 1 or c > 0:
+            elif source == 1:
                 for j in range(w):
                     cur = _bilerp(top[j], top[j + 1], bottom[j], bottom[j + 1], fx, fy)
                     new_c[j] = _blend(mid_c[j], cur, lo_c[j], hi_c[j], alpha[j])
             else:
-                left, right = mid[0, lb, ls:], mid[0, rb, rs:]
-                up_b, down_b = up[0, b, 1:], down[0, b, 1:]
+                left, right = mid[c, lb, ls:], mid[c, rb, rs:]
+                up_b, down_b = up[c, b, 1:], down[c, b, 1:]
                 for j in range(w):
                     cur = _bilerp(top[j], top[j + 1], bottom[j], bottom[j + 1], fx, fy)
                     prev = _catmull_rom(
@@ -610,14 +612,14 @@ def _blend_row_2x(
                 cur1 = _bilerp(top1[j], top1[j + 1], bottom1[j], bottom1[j + 1], fx1, fy)
                 out[2 * j] = _blend(cur0, cur0, lo_c[j], hi_c[j], alpha0[j])
                 out[2 * j + 1] = _blend(cur1, cur1, lo_c[j], hi_c[j], alpha1[j])
-        elif source == 1 or c > 0:
+        elif source == 1:
             for j in range(w):
                 cur0 = _bilerp(top0[j], top0[j + 1], bottom0[j], bottom0[j + 1], fx0, fy)
                 cur1 = _bilerp(top1[j], top1[j + 1], bottom1[j], bottom1[j + 1], fx1, fy)
                 out[2 * j] = _blend(m[2 * j], cur0, lo_c[j], hi_c[j], alpha0[j])
                 out[2 * j + 1] = _blend(m[2 * j + 1], cur1, lo_c[j], hi_c[j], alpha1[j])
         else:
-            pad, u, d = mid[0], up[0, 1:], down[0, 1:]  # pad[X + 1] is display column X
+            pad, u, d = mid[c], up[c, 1:], down[c, 1:]  # pad[X + 1] is display column X
             for j in range(w):
                 cur0 = _bilerp(top0[j], top0[j + 1], bottom0[j], bottom0[j + 1], fx0, fy)
                 cur1 = _bilerp(top1[j], top1[j + 1], bottom1[j], bottom1[j + 1], fx1, fy)
@@ -675,7 +677,7 @@ def display_blocked(
     weight and motion of render pixel (i, j) and the sample weight sub_weight[a, b];
     its history comes as ``prev_mode`` says (fetch grid: ``gx_base[X]`` the x of
     sub-pixel 0 of X's block, ``gx_off[X]`` X's offset from it, ``gy`` the y of every
-    display row, ``gy_off[a]`` likewise). With ``catmull_rom`` the fetched luma gets
+    display row, ``gy_off[a]`` likewise). With ``catmull_rom`` the fetched planes get
     ``_sharpen_fetch``'s correction, which needs the fetched rows above and below:
     each block of rows fetches into a ring of three rows. Writes ``hist_new`` (``hist``
     is read around each pixel, so it cannot be written in place) and ``out`` (H, W, 3).

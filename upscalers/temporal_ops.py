@@ -16,6 +16,7 @@ import torch
 import torch.nn.functional as F
 
 from server.frames.frame import RenderFrame, Size
+from upscalers import lanczos
 
 
 def as_tensor(array: Any, device: torch.device) -> torch.Tensor:
@@ -261,3 +262,15 @@ def ycocg_to_rgb8(ycocg: torch.Tensor) -> torch.Tensor:
     for c in range(3):
         out[:, c].copy_(rgb[c])
     return out.view(big_h, big_w, 3).permute(2, 0, 1)
+
+
+def spatial_reconstruction(
+    ycocg: torch.Tensor, display: Size, jit: tuple[float, float]
+) -> torch.Tensor:
+    """(3, h, w) samples taken at (i + 0.5 + jitter) -> (3, H, W) Lanczos-2 reconstruction
+    at the display pixel centres, not clamped (the box clamp of the blend bounds it)."""
+    _, h, w = ycocg.shape
+    axes = lanczos.plan_axes(
+        (h, w), (display.height, display.width), ycocg.device, ycocg.dtype, jit
+    )
+    return lanczos.apply_axes(ycocg, *axes)

@@ -27,7 +27,12 @@ class TemporalParams:
     # Unsharp amount applied to the render samples (4-neighbour cross): the game picks
     # texture mips for the render size, accumulation alone cannot undo that blur.
     presharpen: float = 0.75
-    # History fetch: bilinear plus a Catmull-Rom correction of luma (see _sharpen_fetch);
+    # History fetch: bilinear plus a Catmull-Rom correction of each plane (_sharpen_fetch);
     # the gain scales the correction (1 = Catmull-Rom).
     history_catmull_rom: bool = True
     history_sharpen_gain: float = 1.0
+    # A reset (first frame, scene cut) starts the history from a Lanczos-2 reconstruction
+    # of the frame's own samples at their jittered positions, worth this much accumulated
+    # sample weight in that frame's blend (not carried on): the first frames after a cut
+    # are as sharp as a spatial upscaler instead of the sparse jittered samples alone.
+    reset_weight: float = 1.0
