@@ -39,6 +39,9 @@ def test_every_method_takes_odd_sizes_one_pixel_and_both_colour_forms(method: st
         as_float = image / 255.0
         assert _levels(upscale_image(as_float, 2, method=method), out) <= 1
         assert _levels(upscale_image(as_float.astype(np.float32), 2, method=method), out) <= 1
+        flipped = image[::-1, ::-1, ::-1]  # a view with negative strides (BGR -> RGB, say)
+        flipped_out = upscale_image(flipped, 2, method=method)
+        assert np.array_equal(flipped_out, upscale_image(flipped.copy(), 2, method=method))
         flat = upscale_image(np.full((h, w, 3), 77, np.uint8), (2 * w + 1, 2 * h + 3), method)
         assert flat.shape == (2 * h + 3, 2 * w + 1, 3)
         assert flat.min() >= 76 and flat.max() <= 78

@@ -61,7 +61,11 @@ def color_image(image: object, what: str = "image") -> U8Array:
     if shape[0] == 0 or shape[1] == 0:
         raise ValueError(f"{what} must have at least one pixel, got shape {shape}")
     if image.dtype == np.uint8:
-        return image
+        # A view such as image[..., ::-1] (BGR to RGB) has negative or gapped strides,
+        # which torch.from_numpy refuses; the ring's slots, which methods are written
+        # for, are contiguous. A contiguous image is passed on without a copy.
+        contiguous: U8Array = np.ascontiguousarray(image)
+        return contiguous
     if image.dtype not in FLOAT_DTYPES:
         raise TypeError(
             f"{what} must be uint8 in 0..255 or float32/float64 in [0, 1], got dtype {image.dtype}"

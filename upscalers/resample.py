@@ -9,12 +9,13 @@ resample`` compares them on game frames and noise, borders included):
 
 - bilinear, always: within one level everywhere (both clamp the sample position
   to the edge pixel centre; OpenCV's 11-bit fixed-point weights round
-  differently), 3-4x faster at 1.5x, 2x and 3x to 1280x720 on 2 cores;
+  differently), 3.9-5.5x as fast at 1.5x, 2x and 3x to 1280x720 on 2 cores;
 - nearest, when the display size is a whole multiple (up to 8) of the render
-  size on both axes: the same bits (no output centre falls on an input pixel edge, so
-  no tie to break), 10-16x faster. At other scales OpenCV's exact nearest
-  breaks the ties the other way (at 1.5x a whole pixel off in a third of the
-  rows), so torch keeps them.
+  size on both axes: the same bits (no output centre falls on an input pixel
+  edge, so no tie to break), 8x as fast at 2x. At other scales OpenCV's exact
+  nearest breaks ties the other way (at 1.5x another source pixel for 14 % of a
+  noise image's pixels, 7 % of a game frame's off by more than a level), so
+  torch keeps them.
 
 Bicubic stays on torch: OpenCV's cubic is a = -0.75, 16 levels and more from
 Catmull-Rom on a game frame (it is ``cv_cubic``, a method of its own).
