@@ -218,7 +218,13 @@ def test_non_finite_motion_and_depth_are_sanitized_as_in_the_stream() -> None:
     bad = np.zeros((H, W, 2), np.float32)
     bad[3, 4] = np.nan
     depth = np.full((H, W), np.inf, np.float32)
-    outs = list(upscale_sequence(frames, SCALE, "temporal", motion=[bad] * 4, depth=[depth] * 4))
+    # Flipped views too: planes with negative strides are made contiguous at the edge.
+    motion, depths = [bad[::-1, ::-1]] * 4, [depth[::-1]] * 4
+    outs = list(upscale_sequence(frames, SCALE, "temporal", motion=motion, depth=depths))
+    torch_path = upscale_sequence(
+        frames, SCALE, "temporal", motion=motion, depth=depths, backend="torch"
+    )
+    assert _levels(list(torch_path)[-1], outs[-1]) <= 1
     clean = list(upscale_sequence(frames, SCALE, "temporal"))
     assert _levels(outs[-1], clean[-1]) == 0  # NaN motion -> 0, Inf depth -> 1 (the default)
 

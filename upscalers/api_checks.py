@@ -126,7 +126,7 @@ def float_plane(value: object, shape: tuple[int, ...], what: str, frame_index: i
         raise ValueError(f"{where} must have shape {shape} (the frame's), got {value.shape}")
     if not np.issubdtype(value.dtype, np.floating):
         raise TypeError(f"{where} must be float, got dtype {value.dtype}")
-    out: F32Array = np.asarray(value, dtype=np.float32)
+    out: F32Array = np.ascontiguousarray(value, dtype=np.float32)  # torch refuses odd strides
     return out
 
 
