@@ -67,6 +67,7 @@ import torch.nn.functional as F
 from server.frames.frame import FrameFlags, RenderFrame, Size
 from upscalers import temporal_ops as ops
 from upscalers.base import BACKENDS, Backend, Upscaler, numba_can_run
+from upscalers.fsr1_rcas import Rcas
 from upscalers.kernel_readiness import kernels_ready
 from upscalers.temporal_params import TemporalParams
 
@@ -141,6 +142,7 @@ class TemporalUpscaler(Upscaler):
         self._neighbour_bufs: tuple[torch.Tensor, torch.Tensor] | None = None
         # The numba path's state and buffers for the current geometry (None: torch path).
         self._host: HostTemporal | None = None
+        self._rcas: Rcas | None = None  # the output's sharpening (torch path)
 
     def reset(self) -> None:
         self._history = None
@@ -218,7 +220,32 @@ class TemporalUpscaler(Upscaler):
         else:
             history = new.reshape(1, 3, big_h, big_w).to(self.storage_dtype)
         self._history = history
-        return ops.ycocg_to_rgb8(history[0])
+        return self._sharpen_output(ops.ycocg_to_rgb8(history[0]), frame)
+
+    def _sharpen_output(self, rgb8: torch.Tensor, frame: RenderFrame) -> torch.Tensor:
+        """RCAS of the (3, H, W) uint8 output (``TemporalParams.output_sharpness``),
+        quantized as the numba path's ``rcas_to_rgb8`` does (clamp, x 255 + 0.5, floor),
+        then clamped to the 3x3 range of the frame's own colour around each display
+        pixel's render pixel: RCAS keeps a pixel near its neighbours' range, not inside
+        it (a 64|191 step came out 57..198)."""
+        stops = self.params.output_sharpness
+        if stops is None:
+            return rgb8
+        if self._rcas is None:
+            self._rcas = Rcas(sharpness=stops)
+        _, big_h, big_w = rgb8.shape
+        dev = rgb8.device
+        padded = torch.empty((3, big_h + 2, big_w + 2), device=dev, dtype=torch.float32)
+        padded[:, 1:-1, 1:-1].copy_(rgb8).mul_(1.0 / 255.0)
+        sharp = self._rcas(padded)
+        out = sharp.mul_(255.0).add_(0.5).floor_().clamp_(0.0, 255.0)
+        color = ops.as_tensor(frame.color, dev).permute(2, 0, 1).to(torch.float32)
+        lo, hi = ops.box_3x3(color)
+        h, w = color.shape[1:]
+        iy, ix = ops.nearest_index(big_h, h, dev), ops.nearest_index(big_w, w, dev)
+        lo = lo.index_select(1, iy).index_select(2, ix)
+        hi = hi.index_select(1, iy).index_select(2, ix)
+        return torch.minimum(torch.maximum(out, lo), hi).to(torch.uint8)
 
     def _host_for(self, render: Size, display: Size, dev: torch.device) -> HostTemporal | None:
         """The numba path's state for a new geometry, or None where the torch path runs."""

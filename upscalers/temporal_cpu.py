@@ -25,6 +25,7 @@ import numpy.typing as npt
 import torch
 
 from server.frames.frame import RenderFrame, Size
+from upscalers import fsr1_cpu_kernels as fsr1_kernels
 from upscalers import temporal_cpu_kernels as kernels
 from upscalers import temporal_ops as ops
 
@@ -120,6 +121,9 @@ class HostTemporal:
         # reads around each pixel, so the history cannot be written in place).
         self._history = np.zeros((3, big_h, big_w), np.float32)
         self._spare = np.zeros((3, big_h, big_w), np.float32)
+        self._rcas_in = np.zeros((3, big_h + 2, big_w + 2), np.float32)  # output, bordered
+        self._box_lo = np.zeros((h, w, 3), np.uint8)  # the colour's 3x3 box (render size)
+        self._box_hi = np.zeros((h, w, 3), np.uint8)
         self._weight = np.zeros((h, w), np.float32)
         self._prev_far = np.zeros((h, w), np.float32)
         self._has_history = False
@@ -182,6 +186,17 @@ class HostTemporal:
             mode = kernels.PREV_FETCH
         out = self._output()
         self._display_stage(phase, mode, out)
+        stops = self.params.output_sharpness
+        if stops is not None:
+            # TemporalUpscaler._sharpen_output: the same RCAS kernel as FSR 1's.
+            kernels.rgb8_to_padded(out, self._rcas_in)
+            big_w, big_h = self.display
+            fsr1_kernels.rcas_to_rgb8(
+                self._rcas_in, np.float32(2.0**-stops), out.reshape(big_h, 3 * big_w)
+            )
+            color = np.ascontiguousarray(frame.color, dtype=np.uint8)
+            kernels.rgb8_box_3x3(color, self._box_lo, self._box_hi)
+            kernels.clamp_rgb8(out, self._box_lo, self._box_hi, self._near_x, self._near_y)
         self._history, self._spare = self._spare, self._history
         self._has_history = True
         return torch.from_numpy(out).permute(2, 0, 1)

@@ -803,3 +803,50 @@ def display_generic(
                     new[c, 0, x] = _blend(prev, cur, lo[c, i, j], hi[c, i, j], alpha)
             _store_row(new, hist_new, y)
             _rgb_row(hist_new, y, out)
+
+
+@njit(parallel=True, **_JIT)
+def rgb8_to_padded(rgb, padded):
+    """(H, W, 3) uint8 into the interior of a (3, H + 2, W + 2) float image in [0, 1]
+    (``TemporalUpscaler._sharpen_output``'s input; the RCAS kernel fills the border)."""
+    h, w = rgb.shape[0], rgb.shape[1]
+    k = F32(1.0 / 255.0)
+    for y in prange(h):
+        for c in range(3):
+            dst = padded[c, y + 1]
+            for x in range(w):
+                dst[x + 1] = F32(rgb[y, x, c]) * k
+
+
+@njit(parallel=True, **_JIT)
+def rgb8_box_3x3(color, lo, hi):
+    """Per render pixel and channel, the min and max of the (h, w, 3) uint8 colour over
+    its 3x3 neighbourhood, edges replicated (``ops.box_3x3``), into ``lo`` and ``hi``."""
+    h, w = color.shape[0], color.shape[1]
+    for y in prange(h):
+        y0, y1 = max(y - 1, 0), min(y + 1, h - 1)
+        for x in range(w):
+            x0, x1 = max(x - 1, 0), min(x + 1, w - 1)
+            for c in range(3):
+                mn = color[y, x, c]
+                mx = mn
+                for yy in range(y0, y1 + 1):
+                    for xx in range(x0, x1 + 1):
+                        v = color[yy, xx, c]
+                        mn = min(mn, v)
+                        mx = max(mx, v)
+                lo[y, x, c] = mn
+                hi[y, x, c] = mx
+
+
+@njit(parallel=True, **_JIT)
+def clamp_rgb8(out, lo, hi, near_x, near_y):
+    """Clamp display pixel (Y, X) of ``out`` (H, W, 3) uint8 to the box of render pixel
+    (near_y[Y], near_x[X]) (``ops.nearest_index``)."""
+    big_h, big_w = out.shape[0], out.shape[1]
+    for y in prange(big_h):
+        i = near_y[y]
+        for x in range(big_w):
+            j = near_x[x]
+            for c in range(3):
+                out[y, x, c] = min(max(out[y, x, c], lo[i, j, c]), hi[i, j, c])

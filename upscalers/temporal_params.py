@@ -24,9 +24,10 @@ class TemporalParams:
     # Current-frame reconstruction: bilinear between the jittered samples with the
     # fraction pushed towards the nearest sample (1 = bilinear, larger = crisper).
     reconstruct_sharpness: float = 3.0
-    # Unsharp amount applied to the render samples (4-neighbour cross): the game picks
-    # texture mips for the render size, accumulation alone cannot undo that blur.
-    presharpen: float = 0.75
+    # Unsharp amount applied to the render samples (4-neighbour cross). Off: it rang at
+    # edges (a 64|191 step came out 40..215) and, clamped to stop that, cost 0.2-0.5 dB
+    # on the game's scenes; the output's RCAS (below) sharpens without leaving the range.
+    presharpen: float = 0.0
     # History fetch: bilinear plus a Catmull-Rom correction of each plane (_sharpen_fetch);
     # the gain scales the correction (1 = Catmull-Rom).
     history_catmull_rom: bool = True
@@ -36,3 +37,8 @@ class TemporalParams:
     # sample weight in that frame's blend (not carried on): the first frames after a cut
     # are as sharp as a spatial upscaler instead of the sparse jittered samples alone.
     reset_weight: float = 1.0
+    # RCAS of the output, in stops (0 strongest; None: off), as FSR 2 sharpens after
+    # accumulation: the history stays unsharpened, and RCAS never leaves the range of a
+    # pixel's 4 neighbours, so no halo. 0.5 stops: on the game's scenes (2x, 640x360)
+    # +0.04 to +0.6 dB against the presharpened samples it replaces; 1 and 2 stops less.
+    output_sharpness: float | None = 0.5
