@@ -408,7 +408,11 @@ class TemporalUpscaler(Upscaler):
         if mask_d is not None:
             trust.mul_(mask_d.mul(p.dynamic_keep - 1.0).add_(1.0))
         weight = torch.nan_to_num(self._weight.view(-1).take(idx), nan=0.0, posinf=0.0)
-        return weight.clamp_(0.0, p.max_weight).mul_(trust)
+        # Moving pixels keep less: every frame resamples their history (see
+        # TemporalParams.moving_max_weight).
+        moving = ((mv[0] != 0.0) | (mv[1] != 0.0)).to(dt)
+        cap = moving.mul_(p.moving_max_weight - p.max_weight).add_(p.max_weight)
+        return torch.minimum(weight.clamp_(min=0.0), cap).mul_(trust)
 
     def _store_weight(self, prev_weight: torch.Tensor, mean_sample_weight: float) -> None:
         if self._history is None:

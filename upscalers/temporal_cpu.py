@@ -244,7 +244,8 @@ class HostTemporal:
             self._has_history, np.float32(p.reset_weight), np.float32(0.5 + jit[0]),
             np.float32(0.5 + jit[1]),
             np.float32(0.5 + pjx), np.float32(0.5 + pjy), np.float32(1.0 + p.depth_tolerance),
-            np.float32(p.dynamic_keep - 1.0), np.float32(p.max_weight), b.ycc, b.dilated,
+            np.float32(p.dynamic_keep - 1.0), np.float32(p.max_weight),
+            np.float32(p.moving_max_weight), b.ycc, b.dilated,
             b.prev_weight,
         )  # fmt: skip
         self._prev_jitter = jit

@@ -255,7 +255,8 @@ def render_inputs(
 @njit(parallel=True, **_JIT)
 def render_reproject(
     raw, amount, lin, mvs, mask_f, prev_far, weight, has_history, reset_weight, x_off, y_off,
-    px_off, py_off, far_scale, keep_minus_one, max_weight, ycc, mvd, prev_weight,
+    px_off, py_off, far_scale, keep_minus_one, max_weight, moving_max_weight, ycc, mvd,
+    prev_weight,
 ):  # fmt: skip
     """Presharpened colour, dilated motion and the trusted accumulated weight (render size).
 
@@ -344,7 +345,9 @@ def render_reproject(
                 wv = weight_flat[k]
                 wv = zero if wv != wv or wv == np.inf else wv
                 trust = (one if inside_f[x] != zero and visible else zero) * mask_factor[x]
-                pw_row[x] = min(max(wv, zero), max_weight) * trust
+                still = (mvd_x[x] == zero) & (mvd_y[x] == zero)
+                cap = max_weight if still else moving_max_weight
+                pw_row[x] = min(max(wv, zero), cap) * trust
     return moving
 
 
