@@ -203,20 +203,28 @@ def test_a_source_that_stops_and_starts_keeps_the_clock() -> None:
     assert capture.stats.gaps == 1
 
 
-def test_frame_events_sound_at_their_render_time() -> None:
+def test_frame_events_sound_at_their_time_or_at_once_when_late() -> None:
     sounds = GameSounds()
     capture, _out, clock = capture_with(sounds)
     clock.mono += 400_000_000
     capture.step()
-    # A frame rendered 50 ms ago with a scene cut reaches the session now.
+    made_until = capture._next
+    # A frame rendered 10 ms ago: its time (after the hold-back) is still to be made.
     meta = moving_meta(1, 0.0, FrameFlags.RESET)
-    meta.stamps[Stage.RENDER_START, 0] = clock.mono - 50_000_000
+    meta.stamps[Stage.RENDER_START, 0] = clock.mono - 10_000_000
+    clock.mono += 40_000_000
     capture.frame(meta)
     capture.step()
-    assert sounds.scene == 0
-    made_until_us = (capture._next or 0) * 1_000_000 // SAMPLE_RATE
-    assert made_until_us == (clock.mono - 50_000_000 - capture.origin_ns) // 1000
-    assert capture.stats.late_events == 0
+    assert sounds.scene == 0 and capture.stats.late_events == 0
+    assert made_until is not None and capture._next is not None
+    assert capture._next == (clock.mono - HOLD_BACK_NS - capture.origin_ns) * SAMPLE_RATE // 10**9
+    # A frame rendered 100 ms ago: too late for its sample, it sounds at once.
+    late = moving_meta(2, 0.0, FrameFlags.RESET)
+    late.stamps[Stage.RENDER_START, 0] = clock.mono - 100_000_000
+    capture.frame(late)
+    capture.step()
+    assert sounds.scene == 1 and capture.stats.late_events == 1
+    assert abs(capture.stats.event_lag_ns[-1] - (100_000_000 - HOLD_BACK_NS)) < 1_000_000
 
 
 def test_a_failing_encoder_turns_audio_off_and_nothing_else() -> None:

@@ -47,6 +47,8 @@ export class AudioPlayer {
 	#decoder?: AudioDecoder;
 	#rendition?: AudioRendition;
 	#offsetFrames?: number; // what the worklet plays with (context frame - media frame)
+	#targetMs?: number; // the target that offset was made for
+	#mappedRunning = false; // whether it was mapped with the running output clock
 	readonly #videoOffsets = new Window(VIDEO_WINDOW); // ms: present perf time - pts
 	readonly #arrivals = new Window(LATE_WINDOW); // ms: arrival perf time + jitter - pts
 	// Input pts in decode order. Why not AudioData.timestamp: Chromium's Opus decoder
@@ -130,6 +132,7 @@ export class AudioPlayer {
 	reset(): void {
 		this.#node?.port.postMessage({ type: "reset" });
 		this.#arrivals.clear();
+		this.#targetMs = undefined;
 	}
 
 	/** The player showed the video frame with pts ``ptsUs`` at page time ``perfMs``. */
@@ -162,21 +165,22 @@ export class AudioPlayer {
 	#retarget(): void {
 		const target = this.targetOffsetMs();
 		if (target === undefined) return;
+		const running = this.running;
+		// Compare targets, not sample offsets: the output clock's reading jitters by a
+		// callback or two, and each change of offset is a (faded) jump, so only a real
+		// move of the target, or the context starting, may cause one.
+		if (this.#targetMs !== undefined && this.#mappedRunning === running && Math.abs(target - this.#targetMs) < RESYNC_MS) return;
 		const ts = this.context.getOutputTimestamp();
-		if (ts.contextTime === undefined || ts.performanceTime === undefined || !this.running) {
-			// Not playing yet (no gesture): map with the render clock; corrected once it runs.
-			const offset = Math.round((this.context.currentTime + (target - performance.now()) / 1000) * this.context.sampleRate);
-			this.#setOffset(offset);
-			return;
+		let offset: number;
+		if (!running || !ts.contextTime || !ts.performanceTime) {
+			// Not playing yet (no gesture): map with the render clock; redone once it runs.
+			offset = Math.round((this.context.currentTime + (target - performance.now()) / 1000) * this.context.sampleRate);
+		} else {
+			// The sample at context time C is heard at performanceTime + (C - contextTime).
+			offset = Math.round((ts.contextTime + (target - ts.performanceTime) / 1000) * this.context.sampleRate);
 		}
-		// The sample at context time C is heard at performanceTime + (C - contextTime).
-		const offset = Math.round((ts.contextTime + (target - ts.performanceTime) / 1000) * this.context.sampleRate);
-		this.#setOffset(offset);
-	}
-
-	#setOffset(offset: number): void {
-		const rate = this.context.sampleRate;
-		if (this.#offsetFrames !== undefined && Math.abs(offset - this.#offsetFrames) < (RESYNC_MS * rate) / 1000) return;
+		this.#targetMs = target;
+		this.#mappedRunning = running && !!ts.contextTime && !!ts.performanceTime;
 		this.#offsetFrames = offset;
 		this.#node?.port.postMessage({ type: "offset", offset });
 	}

@@ -5,13 +5,18 @@ The media clock: a packet's ``pts_us`` is (monotonic time of its first sample -
 (a frame's pts is its ``render_start``). So a sound and the picture of the moment it
 belongs to carry the same timestamp, and the player lines them up.
 
-Samples are made up to the newest time the game is known at: a frame's
-``render_start`` when frames arrive (its events, footsteps or a scene cut, land at
-the sample of that frame), else the monotonic clock minus ``HOLD_BACK_NS``, so sound
-goes on when the game stalls or no frame comes at all. Sample time is derived from the
-clock, never counted on its own, so the audio cannot drift from the video however long
-it runs. A source that pauses (``paused``) makes no packets; when it resumes, its
-packets carry the clock's time again: the gap is a gap in pts, not a shift.
+Samples are made up to the monotonic clock minus ``HOLD_BACK_NS``, with the game
+state known at that moment. Why not wait for the frames that show that moment: a
+frame reaches the session only after render, upscale and two ring handoffs (about
+90 ms on 2 cores), and a sound made that late arrives after its picture, which the
+player shows at once: sync would be lost. A real game mixes its sound at logic time,
+ahead of its frames; doing the same here, a frame's events (a footstep, a scene cut)
+sound at their render_start when that sample is still to be made and at once
+otherwise (``late_events``, their lateness in ``event_lag_ns``): events lag their
+pictures by the pipeline's latency, the sound as a whole is in sync. Sample time is
+derived from the clock, never counted on its own, so the audio cannot drift from the
+video however long it runs. A source that pauses (``paused``) makes no packets; when it
+resumes, its packets carry the clock's time again: the gap is a gap in pts, not a shift.
 
 Nothing here waits on the video: a failed encoder logs once, drops audio for good
 and the thread ends; video goes on.
@@ -23,6 +28,7 @@ import logging
 import queue
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -36,7 +42,7 @@ from server.media.audio_encode import AudioPacket, OpusEncoder
 
 log = logging.getLogger(__name__)
 
-HOLD_BACK_NS = 150_000_000  # sound is made this far behind the clock when no frame leads it
+HOLD_BACK_NS = 30_000_000  # sound is made this far behind the clock (scheduling slack)
 WAKE_S = 0.01  # the thread's tick when nothing happens: half a frame
 
 
@@ -63,7 +69,9 @@ class AudioStats:
     packets: int = 0
     bytes: int = 0
     gaps: int = 0  # times the source paused and resumed
-    late_events: int = 0  # frame events that came after their time was already played
+    late_events: int = 0  # frame events that came after their time was already made
+    # How late the last late events were (ns), newest last: what a sound lags its picture.
+    event_lag_ns: deque[int] = field(default_factory=lambda: deque(maxlen=600))
     encode_ns: int = 0  # CPU time spent synthesising and encoding (thread time)
     failed: bool = False
 
@@ -157,8 +165,11 @@ class AudioCapture:
             sample = self._sample_at(at)
             if sample < self._next:
                 self.stats.late_events += 1
-            self._make_until(sample)
-            horizon = max(horizon, sample)
+                lag = (self._next - sample) * 1_000_000_000 // self._rate
+                self.stats.event_lag_ns.append(lag)
+            # Sound up to the event's own time, never past the horizon: frames only
+            # tell what happened, they do not move the clock.
+            self._make_until(min(sample, horizon))
             if meta is None:
                 self.source.click()
             else:
