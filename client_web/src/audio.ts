@@ -25,7 +25,7 @@ export interface AudioRendition {
 }
 
 /** Audio jitter buffer: how far ahead of its arrival a chunk is scheduled at least. */
-export const JITTER_MS = 20;
+export const JITTER_MS = 10;
 // A new target closer than this to the offset in use is ignored: every change is a
 // (faded) jump, so it must be rare; 10 ms keeps sync well inside +-40 ms.
 const RESYNC_MS = 10;
@@ -152,6 +152,17 @@ export class AudioPlayer {
 		this.#arrivals.push(performance.now() + JITTER_MS - ptsUs / 1000);
 		this.#retarget();
 		this.#node?.port.postMessage({ type: "chunk", start: Math.round((ptsUs * rate) / 1e6), data: samples }, [samples.buffer]);
+	}
+
+	/** The sync target's parts (ms, page time minus pts): for the stats and the tests. */
+	syncParts(): { videoMs?: number; arrivalMs?: number; targetMs?: number; offsetFrames?: number; contextMs: number } {
+		return {
+			videoMs: this.#videoOffsets.percentile(50),
+			arrivalMs: this.#arrivals.percentile(95),
+			targetMs: this.#targetMs,
+			offsetFrames: this.#offsetFrames,
+			contextMs: this.context.currentTime * 1000,
+		};
 	}
 
 	/** Page time (ms) at which audio pts P should be heard, minus P. */

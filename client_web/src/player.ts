@@ -147,6 +147,7 @@ function main(): void {
 			decoded: audio?.decoded ?? 0,
 			bufferedMs: audio?.bufferedMs ?? 0,
 			underrunFrames: audio?.underrunFrames ?? 0,
+			sync: audio?.syncParts(),
 		},
 		errors: [...errors],
 	});

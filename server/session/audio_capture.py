@@ -42,7 +42,7 @@ from server.media.audio_encode import AudioPacket, OpusEncoder
 
 log = logging.getLogger(__name__)
 
-HOLD_BACK_NS = 30_000_000  # sound is made this far behind the clock (scheduling slack)
+HOLD_BACK_NS = 10_000_000  # sound is made this far behind the clock (scheduling slack)
 WAKE_S = 0.01  # the thread's tick when nothing happens: half a frame
 
 
