@@ -4,7 +4,7 @@
 //
 // Sync: a video frame with pts P is presented at page time P + videoOffset (the
 // player shows frames as they come, so videoOffset is the pipeline's latency, read
-// from the last presented frames). Audio with pts P is scheduled to be *heard* at the
+// from the last presented frames: their first quartile, see VIDEO_WINDOW). Audio with pts P is scheduled to be *heard* at the
 // same P + videoOffset, which means holding it back: the audio of a moment arrives
 // about when its frame does and video still has to decode and wait for a refresh. If
 // audio ever arrives too late for that, it plays as early as its own jitter buffer
@@ -25,12 +25,20 @@ export interface AudioRendition {
 }
 
 /** Audio jitter buffer: how far ahead of its arrival a chunk is scheduled at least. */
-export const JITTER_MS = 10;
+export const JITTER_MS = 20;
 // A new target closer than this to the offset in use is ignored: every change is a
 // (faded) jump, so it must be rare; 10 ms keeps sync well inside +-40 ms.
 const RESYNC_MS = 10;
-const VIDEO_WINDOW = 60; // presented frames the video offset is the median of
-const LATE_WINDOW = 100; // chunks (2 s) the latest arrival is the max of
+// Short windows and a low quantile for the video: a viewer that joins first sees a burst
+// of old frames (the relay's cached group, decoded at once), whose large offsets must
+// age out within a second, not hold the sound back for as long as they are the median.
+const VIDEO_WINDOW = 30; // presented frames the video offset is the first quartile of
+const VIDEO_QUANTILE = 25;
+// Video this much later than the sound could play is catching up (a viewer that joined
+// decodes the relay's cached group, up to a keyframe interval old, then skips ahead):
+// the sound does not wait for it, it plays as early as it can and syncs once it has.
+const MAX_HOLD_MS = 250;
+const LATE_WINDOW = 100; // chunks (1 s) whose latest arrival bounds the target
 
 /** Per-packet stamps the page adds, wall-clock microseconds. */
 export interface AudioClientStamps {
@@ -64,6 +72,8 @@ export class AudioPlayer {
 	bufferedMs = 0;
 	muted = false;
 	volume = 0.8;
+	/** Whether sound was already on when the latest gesture began (else it started it). */
+	runningAtLastGesture = false;
 
 	constructor() {
 		this.context = new AudioContext({ latencyHint: "interactive", sampleRate: 48000 });
@@ -79,6 +89,7 @@ export class AudioPlayer {
 			if (this.#offsetFrames !== undefined) node.port.postMessage({ type: "offset", offset: this.#offsetFrames });
 		});
 		const unlock = (): void => {
+			this.runningAtLastGesture = this.running;
 			void this.context.resume();
 		};
 		for (const type of ["pointerdown", "keydown", "touchend"]) window.addEventListener(type, unlock, { capture: true });
@@ -132,6 +143,7 @@ export class AudioPlayer {
 	reset(): void {
 		this.#node?.port.postMessage({ type: "reset" });
 		this.#arrivals.clear();
+		this.#videoOffsets.clear();
 		this.#targetMs = undefined;
 	}
 
@@ -157,8 +169,8 @@ export class AudioPlayer {
 	/** The sync target's parts (ms, page time minus pts): for the stats and the tests. */
 	syncParts(): { videoMs?: number; arrivalMs?: number; targetMs?: number; offsetFrames?: number; contextMs: number } {
 		return {
-			videoMs: this.#videoOffsets.percentile(50),
-			arrivalMs: this.#arrivals.percentile(95),
+			videoMs: this.#videoOffsets.percentile(VIDEO_QUANTILE),
+			arrivalMs: this.#arrivals.percentile(100),
 			targetMs: this.#targetMs,
 			offsetFrames: this.#offsetFrames,
 			contextMs: this.context.currentTime * 1000,
@@ -167,10 +179,11 @@ export class AudioPlayer {
 
 	/** Page time (ms) at which audio pts P should be heard, minus P. */
 	targetOffsetMs(): number | undefined {
-		const earliest = this.#arrivals.percentile(95);
+		const earliest = this.#arrivals.percentile(100);
 		if (earliest === undefined) return undefined;
-		const video = this.#videoOffsets.percentile(50);
-		return video === undefined ? earliest : Math.max(video, earliest);
+		const video = this.#videoOffsets.percentile(VIDEO_QUANTILE);
+		if (video === undefined || video - earliest > MAX_HOLD_MS) return earliest;
+		return Math.max(video, earliest);
 	}
 
 	#retarget(): void {

@@ -21,8 +21,9 @@ export function mountAudioControls(root: HTMLElement, audio: AudioPlayer): void 
 		mute.textContent = !audio.running ? "sound: click" : audio.muted ? "sound: off" : "sound: on";
 	};
 	mute.addEventListener("click", () => {
-		// The first click only starts the context (the gesture); later ones toggle.
-		if (!audio.running) audio.setMuted(false);
+		// The click that starts the sound only starts it; later ones toggle. Asked of the
+		// state when the gesture began: by "click" the context may be running already.
+		if (!audio.runningAtLastGesture) audio.setMuted(false);
 		else audio.setMuted(!audio.muted);
 		label();
 	});

@@ -42,8 +42,10 @@ from server.media.audio_encode import AudioPacket, OpusEncoder
 
 log = logging.getLogger(__name__)
 
-HOLD_BACK_NS = 10_000_000  # sound is made this far behind the clock (scheduling slack)
-WAKE_S = 0.01  # the thread's tick when nothing happens: half a frame
+# Sound is made up to this far behind the clock. None: the synthesiser needs no slack
+# (a capture device would: its buffer's latency).
+HOLD_BACK_NS = 0
+WAKE_S = 0.005  # the thread's tick when nothing happens: half a frame
 
 
 @dataclass(frozen=True)

@@ -10,7 +10,7 @@ It publishes three tracks and listens for viewers' inputs:
   video's (see timing_track.py); with audio on, also one ``"kind": "audio"`` record
   per audio packet (its stage stamps) in the same groups.
 - ``audio`` (when the session has sound): one hang ``legacy`` frame (varint pts in
-  microseconds + an Opus packet) per 20 ms, a new group every ``AUDIO_GROUP_FRAMES``
+  microseconds + an Opus packet) per 10 ms, a new group every ``AUDIO_GROUP_FRAMES``
   packets or when the pts jumps, so a late joiner starts within a tenth of a second.
 - ``status``: the session's state and the result of the last control request
   (server/session/session_control.py), one JSON frame per group and a new
@@ -63,7 +63,7 @@ INPUT_TRACK = "input"
 TRACKS = (CATALOG_TRACK, VIDEO_TRACK, TIMING_TRACK, STATUS_TRACK, AUDIO_TRACK)
 # A broadcast without sound refuses ``audio`` like any unknown track.
 SILENT_TRACKS = (CATALOG_TRACK, VIDEO_TRACK, TIMING_TRACK, STATUS_TRACK)
-AUDIO_GROUP_FRAMES = 5  # 100 ms of Opus per group: what a joining viewer may wait for
+AUDIO_GROUP_FRAMES = 10  # 100 ms of Opus per group: what a joining viewer may wait for
 MAX_INPUT_BROADCASTS = 64  # viewers sending input at once; more are ignored (and logged)
 
 

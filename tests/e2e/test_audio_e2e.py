@@ -77,47 +77,47 @@ def _is_tone(reads: list[list[float]], hz: float = TONE_HZ) -> list[float]:
 
 
 def test_player_plays_the_tone_and_measures_sync(stack: LiveStack, browser: Any) -> None:
-    if True:
-        page = open_player(browser, stack.player_url(overlay="0"), frames=5)
-        assert not stats(page)["audio"]["running"]  # no gesture yet: the browser holds it
-        page.click("#audio-mute")  # the first gesture starts the sound
-        page.wait_for_function(
-            "() => window.upcast.stats().audio.running && window.upcast.stats().audio.decoded > 20",
-            timeout=20_000,
-        )
-        found = page.evaluate(ANALYSE)
-        print("audio reads:", json.dumps(found))
-        assert found["state"] == "running"
-        tone = _is_tone(found["reads"])
-        # A real tone (not the noise floor) in at least 7 of 8 reads.
-        assert sum(db > -40 for db in tone) >= 7, found
-        before = stats(page)["framesPresented"]
-        audio = stack.session.audio if stack.session else None
-        assert audio is not None
-        cpu0, t0 = audio.stats.encode_ns, time.monotonic()
-        time.sleep(8)  # let the latency and offset windows fill
-        cpu_share = (audio.stats.encode_ns - cpu0) / 1e9 / (time.monotonic() - t0)
-        summary = _summary(page)
-        offsets = np.abs(np.array(stats(page)["latency"]["av_offset"]["samples"]))
-        summary["abs_av_offset"] = {
-            "p50": float(np.percentile(offsets, 50)),
-            "p95": float(np.percentile(offsets, 95)),
-        }
-        summary["audio_cpu_share_of_a_core"] = cpu_share
-        print("audio e2e:", json.dumps(summary))
-        assert summary["framesPresented"] > before + 20  # video went on (2 loaded cores)
-        lat = summary["latency"]
-        assert lat["audio_total"]["n"] > 50 and lat["av_offset"]["n"] > 20
-        # The target is +-40 ms; measured here: audio 65-155 ms behind the picture
-        # (see the report). This bound only catches a sync that is lost altogether.
-        assert abs(lat["av_offset"]["p50"]) <= 250, lat["av_offset"]
-        # Mute: the output goes quiet, video does not care.
-        page.click("#audio-mute")
-        time.sleep(0.3)
-        muted = page.evaluate(ANALYSE)
-        assert max(db for _, db in muted["reads"]) < min(tone) - 30, (muted, found)
-        page.close()
-        stack.check()
+    page = open_player(browser, stack.player_url(overlay="0"), frames=5)
+    assert not stats(page)["audio"]["running"]  # no gesture yet: the browser holds it
+    page.click("#audio-mute")  # the first gesture starts the sound
+    page.wait_for_function(
+        "() => window.upcast.stats().audio.running && window.upcast.stats().audio.decoded > 20",
+        timeout=20_000,
+    )
+    found = page.evaluate(ANALYSE)
+    print("audio reads:", json.dumps(found))
+    assert found["state"] == "running"
+    tone = _is_tone(found["reads"])
+    # A real tone (not the noise floor) in at least 7 of 8 reads.
+    assert sum(db > -40 for db in tone) >= 7, (found, stats(page)["audio"])
+    before = stats(page)["framesPresented"]
+    audio = stack.session.audio if stack.session else None
+    assert audio is not None
+    cpu0, t0 = audio.stats.encode_ns, time.monotonic()
+    time.sleep(8)  # let the latency and offset windows fill
+    cpu_share = (audio.stats.encode_ns - cpu0) / 1e9 / (time.monotonic() - t0)
+    summary = _summary(page)
+    offsets = np.abs(np.array(stats(page)["latency"]["av_offset"]["samples"]))
+    summary["abs_av_offset"] = {
+        "p50": float(np.percentile(offsets, 50)),
+        "p95": float(np.percentile(offsets, 95)),
+    }
+    summary["audio_cpu_share_of_a_core"] = cpu_share
+    print("audio e2e:", json.dumps(summary))
+    assert summary["framesPresented"] > before + 20  # video went on (2 loaded cores)
+    lat = summary["latency"]
+    assert lat["audio_total"]["n"] > 50 and lat["av_offset"]["n"] > 20
+    # The target: within +-40 ms. The median holds it; the p95 does not on 2
+    # loaded cores (each video frame is shown as soon as it is decoded, so the picture's
+    # own latency jitters by tens of ms around the median the sound follows).
+    assert summary["abs_av_offset"]["p50"] <= 40, summary["abs_av_offset"]
+    # Mute: the output goes quiet, video does not care.
+    page.click("#audio-mute")
+    time.sleep(0.3)
+    muted = page.evaluate(ANALYSE)
+    assert max(db for _, db in muted["reads"]) < min(tone) - 30, (muted, found)
+    page.close()
+    stack.check()
 
 
 # Milliseconds from now until the player's output carries the tone (polled every 20 ms).
