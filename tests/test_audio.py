@@ -4,8 +4,11 @@ from __future__ import annotations
 
 import itertools
 import json
+import os
+import subprocess
 import threading
 from dataclasses import dataclass
+from pathlib import Path
 
 import av
 import numpy as np
@@ -28,6 +31,7 @@ from server.moq.wire import Reader
 from server.session.audio_capture import HOLD_BACK_NS, AudioCapture, AudioStamps, CapturedAudio
 from server.session.broadcast import AUDIO_GROUP_FRAMES, TRACKS
 from server.session.timing_track import decode_timing
+from tests.test_encode_catalog import CLIENT_MODULES, HANG_MISSING, HANG_REASON
 from tests.test_session_broadcast import Harness
 
 FRAME_US = FRAME_SAMPLES * 1_000_000 // SAMPLE_RATE
@@ -275,3 +279,44 @@ def test_audio_track_groups_and_timing_records() -> None:
         "audio_encode_end",
         "audio_publish",
     }
+
+
+_HANG_AUDIO_JS = """
+import { readFileSync } from "node:fs";
+import * as Catalog from "HANG/catalog/index.js";
+import * as Legacy from "HANG/container/legacy.js";
+const parsed = Catalog.RootSchema.parse(JSON.parse(readFileSync(process.argv[2], "utf8")));
+const frames = new Legacy.Format().decode(new Uint8Array(readFileSync(process.argv[3])));
+console.log(JSON.stringify({ audio: parsed.audio,
+  frames: frames.map((f) => [f.timestamp, f.payload.length]) }));
+"""
+
+
+@pytest.mark.skipif(HANG_MISSING, reason=HANG_REASON)
+def test_hang_reads_our_audio_catalog_and_frames(tmp_path: Path) -> None:
+    """@moq/hang's own schema and legacy container (what @moq/watch uses) on our bytes."""
+    from server.media.catalog import catalog_for
+    from server.media.encode import EncoderConfig, VideoEncoder
+
+    section = audio_section(sample_rate=48_000, channels=1, bitrate=64_000, frame_ms=10)
+    catalog = catalog_for(VideoEncoder(EncoderConfig(320, 180, fps=30)), audio=section)
+    (tmp_path / "catalog.json").write_bytes(catalog.to_json())
+    packet = OpusEncoder().encode(ToneSource(440.0).render(FRAME_SAMPLES), 48_000 * 5)[0]
+    (tmp_path / "frame.bin").write_bytes(legacy_frame(packet))
+    src = tmp_path / "check.mjs"
+    src.write_text(_HANG_AUDIO_JS.replace("HANG", str(CLIENT_MODULES / "@moq" / "hang")))
+    bundle = tmp_path / "bundle.mjs"
+    subprocess.run(
+        [str(CLIENT_MODULES / ".bin" / "esbuild"), str(src), "--bundle", "--platform=node",
+         "--format=esm", f"--outfile={bundle}", "--log-level=error"],
+        check=True, env={**os.environ, "NODE_PATH": str(CLIENT_MODULES)},
+    )  # fmt: skip
+    result = subprocess.run(
+        ["node", str(bundle), str(tmp_path / "catalog.json"), str(tmp_path / "frame.bin")],
+        check=True, capture_output=True, text=True,
+    )  # fmt: skip
+    out = json.loads(result.stdout)
+    rendition = out["audio"]["renditions"]["audio"]
+    assert rendition["codec"] == "opus" and rendition["container"] == {"kind": "legacy"}
+    assert (rendition["sampleRate"], rendition["numberOfChannels"]) == (48_000, 1)
+    assert out["frames"] == [[5_000_000, len(packet.payload)]]
