@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from server.bench.latency import LiveStack
-from server.game.sounds import ToneSource
+from server.game.sounds import GameSounds, ToneSource
 from server.stack.local import SessionConfig
 from tests.e2e.conftest import DISPLAY, FPS, RENDER, needs, open_player, stats
 
@@ -209,3 +209,25 @@ def test_moq_watch_element_plays_the_tone(stack: LiveStack, browser: Any) -> Non
     print("moq-watch audio reads:", reads)
     assert errors == []
     assert sum(db > -40 for db in _is_tone(reads)) >= 7, reads
+
+
+def test_the_game_sounds_follow_its_frames() -> None:
+    """The reference game's own mix on a live stack: the orbiting camera walks, the first
+    frame sets the scene's tone, and frame events sound within the pipeline's lag."""
+    config = SessionConfig(scene="dolly", render_size=RENDER, display_size=DISPLAY, fps=FPS)
+    with LiveStack(config, audio=True) as live:
+        time.sleep(6)
+        session = live.session
+        assert session is not None and session.audio is not None
+        sounds, stats_ = session.sound, session.audio.stats
+        assert isinstance(sounds, GameSounds)
+        lag_ms = np.array(stats_.event_lag_ns) / 1e6
+        print(
+            f"game sound: {sounds.steps} steps, scene {sounds.scene}, {stats_.packets} packets, "
+            f"event lag p50 {np.percentile(lag_ms, 50):.1f} ms p95 {np.percentile(lag_ms, 95):.1f}"
+        )
+        assert sounds.scene == 0  # the first frame (RESET) set the first scene's tone
+        assert sounds.steps >= 5  # the dolly moves the camera: footsteps
+        assert stats_.packets >= 6 / 0.01 * 0.8 and stats_.gaps == 0 and not stats_.failed
+        assert float(np.percentile(lag_ms, 50)) < 150
+        live.check()
