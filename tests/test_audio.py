@@ -320,3 +320,20 @@ def test_hang_reads_our_audio_catalog_and_frames(tmp_path: Path) -> None:
     assert rendition["codec"] == "opus" and rendition["container"] == {"kind": "legacy"}
     assert (rendition["sampleRate"], rendition["numberOfChannels"]) == (48_000, 1)
     assert out["frames"] == [[5_000_000, len(packet.payload)]]
+
+
+@pytest.mark.parametrize("audio", [True, False])
+def test_audio_flag_sets_the_catalog_and_the_tracks(audio: bool) -> None:
+    from typing import cast
+
+    from server.frames.frame import Size
+    from server.frames.ring import FrameRing
+    from server.session.runner import StreamingSession, StreamSettings
+
+    settings = StreamSettings(relay_url="http://localhost:1/", fps=30, audio=audio)
+    # The ring is only read once the session runs; this test never runs it.
+    session = StreamingSession(settings, cast(FrameRing, None), Size(320, 180))
+    catalog = json.loads(session.broadcast.catalog_json)
+    assert ("audio" in catalog) is audio
+    assert ("audio" in session.broadcast.tracks) is audio
+    assert (session.audio_encoder is not None) is audio
