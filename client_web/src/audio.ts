@@ -38,7 +38,7 @@ const VIDEO_QUANTILE = 25;
 // decodes the relay's cached group, up to a keyframe interval old, then skips ahead):
 // the sound does not wait for it, it plays as early as it can and syncs once it has.
 const MAX_HOLD_MS = 250;
-const LATE_WINDOW = 100; // chunks (1 s) whose latest arrival bounds the target
+const LATE_WINDOW = 100; // chunks (1 s) whose 95th percentile arrival bounds the target (one stall of the page must not move it)
 
 /** Per-packet stamps the page adds, wall-clock microseconds. */
 export interface AudioClientStamps {
@@ -170,7 +170,7 @@ export class AudioPlayer {
 	syncParts(): { videoMs?: number; arrivalMs?: number; targetMs?: number; offsetFrames?: number; contextMs: number } {
 		return {
 			videoMs: this.#videoOffsets.percentile(VIDEO_QUANTILE),
-			arrivalMs: this.#arrivals.percentile(100),
+			arrivalMs: this.#arrivals.percentile(95),
 			targetMs: this.#targetMs,
 			offsetFrames: this.#offsetFrames,
 			contextMs: this.context.currentTime * 1000,
@@ -179,7 +179,7 @@ export class AudioPlayer {
 
 	/** Page time (ms) at which audio pts P should be heard, minus P. */
 	targetOffsetMs(): number | undefined {
-		const earliest = this.#arrivals.percentile(100);
+		const earliest = this.#arrivals.percentile(95);
 		if (earliest === undefined) return undefined;
 		const video = this.#videoOffsets.percentile(VIDEO_QUANTILE);
 		if (video === undefined || video - earliest > MAX_HOLD_MS) return earliest;
