@@ -114,19 +114,21 @@ def moving_meta(frame_id: int, dx: float, flags: FrameFlags = FrameFlags.NONE) -
 
 def test_game_sounds_follow_the_camera_the_scene_and_controls() -> None:
     sounds = GameSounds()
-    sounds.frame(moving_meta(0, 0.0, FrameFlags.RESET))
+    sounds.frame(moving_meta(0, 0.0))  # the first frame seen starts the first scene
+    assert sounds.scene == 0
     still = sounds.render(4800)
     assert abs(dominant_hz(still) - SCENE_TONES_HZ[0]) < 8
     assert float(np.abs(still).max()) < 0.1  # the tone alone is soft
-    for i in range(1, 31):  # 30 frames at 0.1 m each: 3 m, five steps
+    for i in range(1, 32, 2):  # 3.1 m at 0.1 m a frame, every other frame seen: five steps
         sounds.frame(moving_meta(i, 0.1))
     assert sounds.steps == 5
     assert float(np.abs(sounds.render(4800)).max()) > 0.2  # a footstep is loud
-    sounds.frame(moving_meta(40, 50.0))  # a teleport is no walk
-    assert sounds.steps == 5
-    sounds.frame(moving_meta(41, 0.0, FrameFlags.RESET))  # scene cut: the next tone
+    sounds.frame(moving_meta(40, 50.0))  # a teleport is no walk: a cut whose RESET we missed
+    assert sounds.steps == 5 and sounds.scene == 1
+    sounds.frame(moving_meta(41, 50.0, FrameFlags.RESET))  # a cut: the next tone
+    assert sounds.scene == 2
     sounds.render(4800)
-    assert abs(dominant_hz(sounds.render(9600)) - SCENE_TONES_HZ[1]) < 8
+    assert abs(dominant_hz(sounds.render(9600)) - SCENE_TONES_HZ[2]) < 8
     quiet = float(np.abs(sounds.render(960)).max())
     sounds.click()
     assert float(np.abs(sounds.render(960)).max()) > quiet + 0.1

@@ -6,7 +6,7 @@ driven by the frames' own headers (camera, flags) and by the viewer's controls:
 - a soft tone per scene: its pitch changes at every scene cut (``FrameFlags.RESET``),
   gliding over a few milliseconds so a cut never clicks;
 - footsteps while the camera moves: one short low thump per ``STEP_M`` metres travelled,
-  distance read from the camera position of the frame and of its previous frame;
+  distance read from the camera positions of the frames;
 - a click when the viewer uses a control (upscaler, scale, frame generation...).
 
 ``render(n)`` returns the next ``n`` mono float32 samples in [-1, 1]. Events are applied
@@ -67,13 +67,14 @@ class GameSounds:
 
     def __init__(self, sample_rate: int = SAMPLE_RATE, seed: int = 0) -> None:
         self.sample_rate = sample_rate
-        self.scene = -1  # index into SCENE_TONES_HZ; the first RESET frame makes it 0
+        self.scene = -1  # index into SCENE_TONES_HZ; the first frame seen makes it 0
         self.steps = 0
         self.clicks = 0
         self._phase = 0.0
         self._hz = SCENE_TONES_HZ[0]
         self._target_hz = self._hz
         self._walked_m = 0.0
+        self._last: tuple[int, npt.NDArray[np.float64]] | None = None  # frame id, position
         rng = np.random.default_rng(seed)
         # Footstep: a 70 Hz thump with a little noise for the scuff; click: a 2 kHz tick.
         step = _burst(sample_rate, 0.12, 70.0, 0.03)
@@ -85,18 +86,21 @@ class GameSounds:
         self._voices: list[tuple[F32Array, int]] = []
 
     def frame(self, meta: FrameMeta) -> None:
-        """What frame ``meta`` shows: a scene cut changes the tone, travel makes steps."""
-        if meta.flags & FrameFlags.RESET:
+        """What frame ``meta`` shows: a scene cut changes the tone, travel makes steps.
+
+        The session sees only some frames (it encodes the newest and skips the rest when
+        it falls behind), so distances are measured from the last frame seen, and a cut
+        is also a jump too long to walk in the frames between (its RESET frame may be
+        one of those skipped). The first frame seen starts the first scene."""
+        position = camera_position(meta.camera.view)
+        last = self._last
+        self._last = meta.frame_id, position
+        frames = 1 if last is None else max(1, meta.frame_id - last[0])
+        moved = 0.0 if last is None else float(np.linalg.norm(position - last[1]))
+        if last is None or meta.flags & FrameFlags.RESET or moved > MAX_WALK_M * frames:
             self.scene += 1
             self._target_hz = SCENE_TONES_HZ[self.scene % len(SCENE_TONES_HZ)]
             self._walked_m = 0.0
-            return
-        moved = float(
-            np.linalg.norm(
-                camera_position(meta.camera.view) - camera_position(meta.camera.prev_view)
-            )
-        )
-        if moved > MAX_WALK_M:
             return
         self._walked_m += moved
         if self._walked_m >= STEP_M:

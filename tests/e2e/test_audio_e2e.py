@@ -226,7 +226,7 @@ def test_the_game_sounds_follow_its_frames() -> None:
             f"game sound: {sounds.steps} steps, scene {sounds.scene}, {stats_.packets} packets, "
             f"event lag p50 {np.percentile(lag_ms, 50):.1f} ms p95 {np.percentile(lag_ms, 95):.1f}"
         )
-        assert sounds.scene == 0  # the first frame (RESET) set the first scene's tone
+        assert sounds.scene == 0  # the first frame seen set the first scene's tone
         assert sounds.steps >= 5  # the dolly moves the camera: footsteps
         assert stats_.packets >= 6 / 0.01 * 0.8 and stats_.gaps == 0 and not stats_.failed
         assert float(np.percentile(lag_ms, 50)) < 150
