@@ -8,6 +8,7 @@ from server.commands.dispatch import add_choice_arguments, run_choice
 
 EVALUATIONS: dict[str, str] = {
     "upscalers": "speed against error of every upscaler, per scene and scale",
+    "content": "fetch (--fetch) or list the real photographs of the evaluation",
 }
 
 
