@@ -69,6 +69,8 @@ class BenchReport:
     cases: list[dict[str, Any]] = field(default_factory=list)
     ratios: list[dict[str, Any]] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
+    # Further top-level sections of a benchmark's own (the upscaler eval's real_content).
+    sections: dict[str, Any] = field(default_factory=dict)
 
     def add_case(self, name: str, **values: Any) -> dict[str, Any]:
         case = {"name": name, **values}
@@ -89,6 +91,7 @@ class BenchReport:
             "cases": self.cases,
             "ratios": self.ratios,
             "notes": self.notes,
+            **self.sections,
         }
 
     def write(self, path: Path) -> None:

@@ -42,6 +42,7 @@ from server.eval.methods import (
     parse_method,
     sharpness_variants,
 )
+from server.eval.real_content_sources import held_out_images
 from server.frames.frame import RenderFrame, Size
 from server.game.render.mip_bias import MIP_BIAS_HELP, parse_mip_bias
 from server.game.render.renderer import Renderer, RenderTargets
@@ -74,7 +75,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", type=Path, required=True, help="JSON report path")
     parser.add_argument("--plot", type=Path, default=None, help="speed-against-error PNG")
     parser.add_argument("--table", type=Path, default=None, help="Markdown table path")
-    parser.add_argument("--scenes", default=",".join(SCENE_NAMES), help="comma-separated")
+    parser.add_argument(
+        "--scenes",
+        default=",".join(SCENE_NAMES),
+        help="comma-separated game scenes, or 'none' (with --real-content: photographs only)",
+    )
     parser.add_argument("--scales", default="1.5,2,3", help="display/render, comma-separated")
     parser.add_argument("--methods", default=",".join(DEFAULT_METHODS), help="comma-separated")
     parser.add_argument("--display-size", default="1280x720")
@@ -104,6 +109,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="add METHOD+torch (eager torch instead of the numba CPU kernel or OpenCV) "
         "for every method whose CPU default is not torch",
     )
+    parser.add_argument(
+        "--real-content",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="add the held-out photographs of DIR (`upcast eval content --fetch --dir DIR`): "
+        "first frame, pan, zoom, still camera and a cut, per scale",
+    )
+    parser.add_argument("--real-display-size", default="640x360", help="photograph crops")
+    parser.add_argument("--real-frames", type=int, default=32, help="frames per photo sequence")
+    parser.add_argument(
+        "--real-measure-from", type=int, default=8, help="first measured frame of pan/zoom/still"
+    )
 
 
 @dataclass
@@ -120,7 +138,9 @@ def _csv(text: str) -> list[str]:
 
 
 def _parse(args: argparse.Namespace) -> tuple[list[str], list[float], list[MethodSpec], Size]:
-    scenes = parse_scene_list(args.scenes)
+    scenes = [] if args.scenes == "none" else parse_scene_list(args.scenes)
+    if not scenes and args.real_content is None:
+        raise SystemExit("--scenes none leaves nothing to evaluate without --real-content")
     labels = _csv(args.methods)
     try:
         labels += sharpness_variants([float(s) for s in _csv(args.rcas_sharpness)])
@@ -140,6 +160,14 @@ def _parse(args: argparse.Namespace) -> tuple[list[str], list[float], list[Metho
     if args.frames <= WARMUP_CALLS:
         raise SystemExit(f"--frames must be above {WARMUP_CALLS} (the untimed warm-up calls)")
     display = Size.parse(args.display_size)
+    if args.real_content is not None:
+        try:
+            held_out_images(args.real_content)  # a missing folder fails before rendering
+            Size.parse(args.real_display_size)
+        except (FileNotFoundError, ValueError) as e:
+            raise SystemExit(str(e)) from None
+        if not 2 <= args.real_measure_from < args.real_frames:
+            raise SystemExit("--real-measure-from must be at least 2 and below --real-frames")
     try:
         parse_mip_bias(args.mip_bias, display, display)  # a bad value fails before rendering
     except ValueError as e:
@@ -289,10 +317,12 @@ def run(args: argparse.Namespace) -> int:
     add_ratios(report)
     checks = must_show_checks(report.cases)
     report.notes.extend(f"{'PASS' if ok else 'FAIL'}: {text}" for text, ok in checks)
-    report.write(args.json)
     from server.eval.table import markdown_table
 
-    table = markdown_table(report.cases, checks)
+    table = markdown_table(report.cases, checks) if report.cases else ""
+    if args.real_content is not None:
+        table = "\n\n".join(filter(None, [table, _real_content(args, report, methods, scales)]))
+    report.write(args.json)
     print(table)
     if args.table:
         args.table.parent.mkdir(parents=True, exist_ok=True)
@@ -304,8 +334,40 @@ def run(args: argparse.Namespace) -> int:
             report.cases, args.plot, title=f"upscalers to {display}, CPU ({args.threads} threads)"
         )
         print(f"plot written to {args.plot}")
+        if "real_content" in report.sections:
+            from server.eval.real_content_report import cut_plot
+
+            cut_path = args.plot.with_name(args.plot.stem + "_cut" + args.plot.suffix)
+            cut_plot(report.sections["real_content"], cut_path)
+            print(f"cut plot written to {cut_path}")
     print(f"report written to {args.json}")
     return 0
+
+
+def _real_content(
+    args: argparse.Namespace, report: BenchReport, methods: list[MethodSpec], scales: list[float]
+) -> str:
+    """Run the held-out photographs after the game scenes (whose ratios and checks are
+    taken on the game's cases only); their cases, section, checks and table."""
+    from server.eval.real_content import run_suite
+    from server.eval.real_content_report import real_content_checks, real_content_table
+
+    images = held_out_images(args.real_content)
+    progress(f"real content: {len(images)} held-out photographs from {args.real_content}")
+    cases, section = run_suite(
+        images,
+        methods,
+        Size.parse(args.real_display_size),
+        scales,
+        args.real_frames,
+        args.real_measure_from,
+    )
+    report.cases.extend(cases)
+    report.sections["real_content"] = section
+    report.config["real_content"] = str(args.real_content)
+    checks = real_content_checks(section)
+    report.notes.extend(f"{'PASS' if ok else 'FAIL'}: {text}" for text, ok in checks)
+    return real_content_table(section, checks)
 
 
 def add_ratios(report: BenchReport) -> None:
