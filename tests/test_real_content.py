@@ -1,0 +1,229 @@
+"""The real-content suite: content manifest and split, photo sequences, the eval command."""
+
+from __future__ import annotations
+
+import io
+import json
+import tarfile
+import urllib.error
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pytest
+from PIL import Image
+
+from server.cli import main
+from server.eval import real_content_fetch
+from server.eval.real_content_fetch import data_tarball, fetch_all
+from server.eval.real_content_sequences import PAN_PER_FRAME, build_sequence
+from server.eval.real_content_sources import (
+    SOURCES,
+    held_out_images,
+    pick_members,
+    source_named,
+    split_names,
+)
+from server.frames.frame import FrameFlags, Size
+from upscalers import metrics
+from upscalers.host import UpscalerHost
+from upscalers.output import to_uint8
+
+
+def _photo(seed: int, shape: tuple[int, int] = (220, 300)) -> np.ndarray:
+    """Texture with detail at every scale: noise blurred at two radii, plus edges."""
+    rng = np.random.default_rng(seed)
+    noise = rng.random((*shape, 3)).astype(np.float32)
+    img = 0.6 * cv2.GaussianBlur(noise, (0, 0), 6) + 0.4 * cv2.GaussianBlur(noise, (0, 0), 1.2)
+    img = (img - img.min()) / (img.max() - img.min())
+    img[60:70, :, 0] = 1.0  # a hard edge band
+    return (img * 255).astype(np.uint8)
+
+
+def test_split_is_deterministic_disjoint_and_covers_the_names() -> None:
+    names = [f"img{i:02d}" for i in range(13)]
+    train, held = split_names(names, 0.25)
+    assert (train, held) == split_names(list(reversed(names)), 0.25)
+    assert not set(train) & set(held)
+    assert sorted(train + held) == names
+    assert len(held) == 4  # ceil(13 / 4)
+    assert split_names(["a", "b"], 0.25)[1] and split_names(["a", "b"], 0.25)[0]
+
+
+def test_manifest_picks_the_largest_size_and_names_game_shots_by_set() -> None:
+    plasma = source_named("plasma-photos")
+    members = [
+        "./usr/share/wallpapers/Kite/contents/images/1280x800.jpg",
+        "./usr/share/wallpapers/Kite/contents/images/2560x1600.jpg",
+        "./usr/share/wallpapers/Kite/contents/images/1920x1200.jpg",
+        "./usr/share/wallpapers/Altai/contents/images/5120x2880.png",  # drawn, not listed
+        "./usr/share/wallpapers/Kite/contents/screenshot.png",
+    ]
+    assert pick_members(plasma, members) == {"Kite": members[1]}
+    shots = pick_members(
+        source_named("neverball-shots"), ["./usr/share/games/neverball/shot-easy/peasy.jpg"]
+    )
+    assert list(shots) == ["easy_peasy"]
+    assert all(len(s.sha256) == 64 and s.url.endswith(".deb") for s in SOURCES)
+
+
+def _ar(members: dict[str, bytes]) -> bytes:
+    out = b"!<arch>\n"
+    for name, data in members.items():
+        out += f"{name:<16}{0:<12}{0:<6}{0:<6}{100644:<8}{len(data):<10}`\n".encode() + data
+        out += b"\n" if len(data) % 2 else b""
+    return out
+
+
+def test_data_tarball_is_found_in_the_ar_archive() -> None:
+    deb = _ar({"debian-binary": b"2.0\n", "control.tar.xz": b"x" * 5, "data.tar.xz": b"DATA"})
+    assert data_tarball(deb) == b"DATA"
+    with pytest.raises(ValueError, match="ar magic"):
+        data_tarball(b"PK\x03\x04")
+
+
+def test_fetch_unpacks_and_splits_a_package(tmp_path: Path, monkeypatch: Any) -> None:
+    """A .deb built here, served by a stand-in urlopen: the hash is checked, the images
+    decoded and split, a file Pillow cannot read is skipped."""
+    tar_bytes = io.BytesIO()
+    with tarfile.open(fileobj=tar_bytes, mode="w:xz") as tar:
+        for i in range(6):
+            png = io.BytesIO()
+            Image.fromarray(_photo(i, (20, 30))).save(png, format="PNG")
+            _add(tar, f"./usr/share/backgrounds/mate/nature/p{i}.jpg", png.getvalue())
+        _add(tar, "./usr/share/backgrounds/mate/nature/broken.jpg", b"not an image")
+    deb = _ar({"debian-binary": b"2.0\n", "data.tar.xz": tar_bytes.getvalue()})
+    import hashlib
+
+    source = replace(
+        source_named("mate-nature"), sha256=hashlib.sha256(deb).hexdigest(), size=len(deb)
+    )
+    monkeypatch.setattr(
+        real_content_fetch.urllib.request, "urlopen", lambda *a, **k: io.BytesIO(deb)
+    )
+    counts = fetch_all(tmp_path, (source,))
+    assert counts == {"mate-nature": 6}
+    held = sorted(p.name for p in (tmp_path / "mate-nature" / "held_out").iterdir())
+    train = sorted(p.name for p in (tmp_path / "mate-nature" / "train").iterdir())
+    assert len(held) == 2 and len(train) == 4 and not set(held) & set(train)
+    manifest = json.loads((tmp_path / "manifest.json").read_text())
+    assert "broken" not in manifest["mate-nature"]["train"] + manifest["mate-nature"]["held_out"]
+    bad = replace(source, sha256="0" * 64)
+    (tmp_path / ".debs" / Path(source.pool_path).name).unlink()
+    with pytest.raises(SystemExit, match="SHA-256"):
+        fetch_all(tmp_path, (bad,))
+
+
+def _add(tar: tarfile.TarFile, name: str, data: bytes) -> None:
+    info = tarfile.TarInfo(name)
+    info.size = len(data)
+    tar.addfile(info, io.BytesIO(data))
+
+
+def test_fetch_offline_says_what_it_needs(tmp_path: Path, monkeypatch: Any) -> None:
+    def offline(*args: Any, **kwargs: Any) -> Any:
+        raise urllib.error.URLError("no route")
+
+    monkeypatch.setattr(real_content_fetch.urllib.request, "urlopen", offline)
+    with pytest.raises(SystemExit, match="needs the network"):
+        fetch_all(tmp_path, SOURCES[:1])
+
+
+def test_pan_motion_is_exact_for_a_temporal_method() -> None:
+    """The right motion beats the negated motion by far: the vectors point where the
+    frame contract says (the surface at p was at p + motion)."""
+    display = Size(96, 64)
+    seq = build_sequence("pan", "t", _photo(0), _photo(1), display, 2.0, 12)
+    mx, my = seq.jittered[3].motion[5, 7]
+    assert (mx, my) == pytest.approx((PAN_PER_FRAME[0] / 2, PAN_PER_FRAME[1] / 2), abs=1e-5)
+    scores = {}
+    for sign in (1, -1):
+        host = UpscalerHost("temporal", display, {})
+        psnr = []
+        for frame, truth in zip(seq.jittered, seq.truth, strict=True):
+            f = replace(frame, motion=np.ascontiguousarray(sign * frame.motion))
+            psnr.append(metrics.psnr(truth, to_uint8(host.upscale(f))))
+        scores[sign] = float(np.mean(psnr[4:]))
+    assert scores[1] > scores[-1] + 1.0
+
+
+def test_truth_is_the_render_at_scale_one() -> None:
+    """At 1x an unjittered render pixel's footprint is its display pixel's."""
+    for kind in ("pan", "zoom"):
+        seq = build_sequence(kind, "t", _photo(2), _photo(3), Size(64, 48), 1.0, 5)
+        for frame, truth in zip(seq.unjittered, seq.truth, strict=True):
+            assert np.array_equal(frame.color, truth)
+        # The jittered render samples elsewhere, so it differs.
+        assert not np.array_equal(seq.jittered[1].color, seq.truth[1])
+
+
+def test_zoom_motion_is_radial() -> None:
+    """Zooming in, the surface at p came from nearer the centre: motion points inwards,
+    grows with the distance and vanishes at the centre."""
+    seq = build_sequence("zoom", "t", _photo(4), _photo(5), Size(96, 64), 2.0, 4)
+    m = seq.jittered[2].motion  # 48x32 render pixels, centre between 23 and 24
+    assert m[0, 0, 0] > 0 and m[0, 0, 1] > 0 and m[-1, -1, 0] < 0 and m[-1, -1, 1] < 0
+    assert abs(m[16, 0, 0]) > abs(m[16, 12, 0]) > abs(m[16, 23, 0])
+    assert abs(m[16, 23, 0] + m[16, 24, 0]) < 1e-5  # symmetric about the centre
+
+
+def test_cut_frame_carries_reset_and_a_new_picture() -> None:
+    seq = build_sequence("cut", "t", _photo(6), _photo(7), Size(64, 48), 2.0, 8)
+    flags = [f.meta.flags for f in seq.jittered]
+    assert seq.cut == 4
+    assert flags[0] == flags[4] == FrameFlags.RESET
+    assert all(f == FrameFlags.NONE for i, f in enumerate(flags) if i not in (0, 4))
+    assert not seq.jittered[4].motion.any()
+    before, after = seq.truth[3].astype(int), seq.truth[4].astype(int)
+    assert np.abs(before - after).mean() > 10  # another photograph, not a small pan step
+    first = build_sequence("first", "t", _photo(6), _photo(7), Size(64, 48), 2.0, 8)
+    assert len(first.truth) == 1 and first.jittered[0].meta.flags == FrameFlags.RESET
+
+
+def test_only_photograph_sources_are_evaluated(tmp_path: Path) -> None:
+    for folder in ("neverball-shots", "mate-nature", "mine"):
+        (tmp_path / folder / "held_out").mkdir(parents=True)
+        Image.fromarray(_photo(0, (8, 8))).save(tmp_path / folder / "held_out" / "a.png")
+    found = held_out_images(tmp_path)
+    assert [p.parent.parent.name for p in found] == ["mate-nature", "mine"]
+
+
+def test_eval_refuses_a_missing_content_dir(tmp_path: Path) -> None:
+    with pytest.raises(SystemExit, match="upcast eval content --fetch"):
+        main(
+            ["eval", "upscalers", "--json", str(tmp_path / "x.json"), "--scenes", "none",
+             "--real-content", str(tmp_path / "absent")]
+        )  # fmt: skip
+    with pytest.raises(SystemExit, match="nothing to evaluate"):
+        main(["eval", "upscalers", "--json", str(tmp_path / "x.json"), "--scenes", "none"])
+
+
+def test_eval_real_content_writes_json_table_and_plots(tmp_path: Path) -> None:
+    for i in range(2):
+        (tmp_path / "c" / "pics" / "held_out").mkdir(parents=True, exist_ok=True)
+        Image.fromarray(_photo(10 + i)).save(tmp_path / "c" / "pics" / "held_out" / f"{i}.png")
+    out = tmp_path / "r.json"
+    code = main(
+        ["eval", "upscalers", "--json", str(out), "--table", str(tmp_path / "r.md"),
+         "--plot", str(tmp_path / "r.png"), "--scenes", "none", "--scales", "2",
+         "--methods", "bicubic,easu_rcas,temporal", "--real-content", str(tmp_path / "c"),
+         "--real-frames", "8", "--real-measure-from", "3", "--real-display-size", "96x64"]
+    )  # fmt: skip
+    assert code == 0
+    report = json.loads(out.read_text())
+    section = report["real_content"]
+    assert section["images"] == ["pics/0.png", "pics/1.png"]
+    temporal = section["scales"]["2"]["methods"]["temporal"]
+    assert temporal["temporal"] and temporal["median_ms"] > 0
+    assert len(temporal["kinds"]["pan"]["psnr_per_frame"]) == 8
+    assert len(temporal["kinds"]["first"]["psnr_per_frame"]) == 1
+    assert temporal["kinds"]["cut"]["measured_frames"] == [4, 8]
+    cases = [c for c in report["cases"] if c.get("suite") == "real_content"]
+    assert len(cases) == 3 * 5 and all(15 < c["psnr_db"] < 60 for c in cases)
+    assert any("cut: temporal's frames 0-3 after the cut" in n for n in report["notes"])
+    table = (tmp_path / "r.md").read_text()
+    assert "| temporal |" in table and "pan (f3-7)" in table
+    for png in ("r.png", "r_cut.png"):
+        assert (tmp_path / png).read_bytes()[:4] == b"\x89PNG"
