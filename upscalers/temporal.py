@@ -23,14 +23,17 @@ Per frame:
    centre; history fetched at p + motion (bilinear with a Catmull-Rom correction
    of every plane, so repeated resampling under motion does not blur it); history
    and current reconstruction both clamped to the YCoCg box of the samples as
-   rendered (so the presharpening adds detail but never a halo past the input's
-   local range) and blended with ``alpha = w / (trust * W + w)`` where W is the
-   accumulated weight (capped, so alpha never drops below about 1 / W_max).
+   rendered and blended with ``alpha = w / (trust * W + w)`` where W is the
+   accumulated weight (capped, so alpha never drops below about 1 / W_max; the
+   cap is far lower on moving pixels, whose history every resampling blurs).
    After a reset the history starts as a Lanczos-2 reconstruction of the frame's
-   own samples at their jittered positions, worth ``reset_weight``: the frames
-   after a cut are as good as a spatial upscaler's.
+   own samples at their jittered positions, worth ``reset_weight`` in that
+   frame's blend: the frames after a cut are as good as a spatial upscaler's.
 3. Output: uint8 sRGB (3, H, W), what ring U holds; conversion from YCoCg, scale,
-   rounding and clamp are one matrix product and a clamp.
+   rounding and clamp are one matrix product and a clamp. Then RCAS sharpens it
+   (the history itself stays unsharpened, as in FSR 2) and each display pixel is
+   clamped to the 3x3 range of the frame's colour around its render pixel: detail
+   without a halo past the input's local range.
 
 Colour space: history is kept in YCoCg of the *sRGB-encoded* values. The
 input and the output are sRGB, so no transfer-function work happens at display
