@@ -18,6 +18,9 @@ whose CPU default is a numba kernel or a library resampler (bilinear's OpenCV).
 Quality is measured on the frames after a warm-up that lets temporal history
 build up; FLIP, which costs seconds
 per frame on a CPU, is computed on the last ``--flip-frames`` of them.
+``--real-content DIR`` adds held-out photographs (``real_content.py``): their cases
+join the report's with ``suite: real_content``, but the game's ratios and checks
+are taken before, on the game's cases only.
 """
 
 from __future__ import annotations
@@ -330,8 +333,13 @@ def run(args: argparse.Namespace) -> int:
     if args.plot:
         from server.eval.plot import speed_error_plot
 
+        targets = [f"game scenes to {display}"] if scenes else []
+        if args.real_content is not None:
+            targets.append(f"photographs to {args.real_display_size}")
         speed_error_plot(
-            report.cases, args.plot, title=f"upscalers to {display}, CPU ({args.threads} threads)"
+            report.cases,
+            args.plot,
+            title=f"upscalers, {' and '.join(targets)}, CPU ({args.threads} threads)",
         )
         print(f"plot written to {args.plot}")
         if "real_content" in report.sections:
