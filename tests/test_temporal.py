@@ -170,12 +170,12 @@ def test_motion_far_off_screen_rejects_history() -> None:
     assert torch.isfinite(out).all()
     # No history survives: the output is the current frame (a constant image).
     assert float((out - 200 / 255).abs().max()) < 1e-3
-    # The accumulated weight is this frame's alone, as in a fresh instance (whose spatial
-    # start after its reset counts in that frame's blend only).
+    # The accumulated weight is this frame's alone: a fresh instance's, less what its
+    # reset's spatial start carries into later frames.
     fresh = TemporalUpscaler()
     fresh.upscale(f, DISPLAY)
     assert up._weight is not None and fresh._weight is not None
-    assert torch.allclose(up._weight, fresh._weight)
+    assert torch.allclose(up._weight + fresh.params.reset_carry, fresh._weight)
 
 
 def test_disocclusion_drops_history() -> None:

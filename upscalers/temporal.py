@@ -28,7 +28,8 @@ Per frame:
    cap is far lower on moving pixels, whose history every resampling blurs).
    After a reset the history starts as a Lanczos-2 reconstruction of the frame's
    own samples at their jittered positions, worth ``reset_weight`` in that
-   frame's blend: the frames after a cut are as good as a spatial upscaler's.
+   frame's blend and ``reset_carry`` after it: the frames after a cut are about as
+   good as a spatial upscaler's.
 3. Output: uint8 sRGB (3, H, W), what ring U holds; conversion from YCoCg, scale,
    rounding and clamp are one matrix product and a clamp. Then RCAS sharpens it
    (the history itself stays unsharpened, as in FSR 2) and each display pixel is
@@ -419,9 +420,9 @@ class TemporalUpscaler(Upscaler):
 
     def _store_weight(self, prev_weight: torch.Tensor, mean_sample_weight: float) -> None:
         if self._history is None:
-            # The reset's spatial start shapes this frame only: kept in the weight, its
-            # blur would linger in every later frame (0.3 dB on the game's scenes).
-            mean_sample_weight -= self.params.reset_weight
+            # The reset's spatial start leaves only reset_carry to later frames: kept
+            # whole in the weight, its blur would linger (0.3 dB on the game's scenes).
+            mean_sample_weight += self.params.reset_carry - self.params.reset_weight
         self._weight = (prev_weight + mean_sample_weight).clamp_(max=self.params.max_weight)
 
     # -- display layouts -------------------------------------------------------------

@@ -171,7 +171,8 @@ class HostTemporal:
         phase = self._phase(jit)
         stored = phase.mean_weight
         if not self._has_history:
-            stored = np.float32(stored - self.params.reset_weight)  # as _store_weight
+            p = self.params  # as _store_weight
+            stored = np.float32(stored + (p.reset_carry - p.reset_weight))
         moving = self._render_stage(frame, jit, nf, stored)
         if not self._has_history:
             # A reset: the history starts as the frame's own spatial reconstruction (the
