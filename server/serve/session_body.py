@@ -98,7 +98,6 @@ async def run_game_session(
             bitrate=stream.bitrate_bps,
             gop_seconds=stream.gop_seconds,
             cert_hash_hex=plan.cert_hash_hex,
-            audio=stream.audio,
             upscaler=config.upscaler,
             scale=config.scale,
             frame_generation=config.frame_generation,
