@@ -26,6 +26,20 @@ log = logging.getLogger(__name__)
 _WARN_EVERY_S = 5.0
 # What upscales predicted frames while a temporal method runs (see UpscalerHost.upscale).
 PREDICTED_STAND_IN = "bicubic"
+# What a temporal method gives way to when the frames carry colour only (FrameFlags
+# COLOR_ONLY): the best spatial method on the game's scenes and on photographs
+# (docs/reports/eval_upscalers.md, eval_real_content.md).
+COLOR_ONLY_STAND_IN = "easu_rcas"
+
+
+def needs_gbuffers(name: str) -> bool:
+    """Whether the method reads depth, motion or jitter (every temporal one does)."""
+    return registry.is_temporal(name)
+
+
+def color_only_methods() -> list[str]:
+    """The methods that work from the colour plane alone."""
+    return [m for m in registry.available() if not needs_gbuffers(m)]
 
 
 class UpscalerHost:
@@ -56,6 +70,8 @@ class UpscalerHost:
         self.sanitized_values = 0
         self.sanitized_frames = 0
         self._last_warning = 0.0
+        # Set by the last frame: its source gave colour only (no depth, motion, jitter).
+        self.color_only = False
 
     @property
     def name(self) -> str:
@@ -65,6 +81,12 @@ class UpscalerHost:
         """Use another method from the next frame on (raises ValueError if unknown)."""
         if name == self.upscaler.name:
             return
+        if self.color_only and needs_gbuffers(name):
+            raise ValueError(
+                f"upscaler {name!r} needs depth, motion and jitter, which this source does "
+                f"not give (its frames carry colour only); methods for it: "
+                + ", ".join(color_only_methods())
+            )
         new = self._create(name)
         log.info("upscaler switched: %s -> %s", self.upscaler.name, name)
         self.upscaler = new
@@ -100,12 +122,33 @@ class UpscalerHost:
 
     def upscale(self, frame: RenderFrame) -> torch.Tensor:
         """Sanitize, reset history when needed, upscale. Returns the method's tensor."""
+        if frame.meta.flags & FrameFlags.COLOR_ONLY:
+            return self._upscale_color_only(frame)
+        self.color_only = False
         frame, report = sanitize_frame(frame)
         if report.total:
             self._note_sanitized(frame.meta.frame_id, report)
         if frame.meta.flags & FrameFlags.PREDICTED and self.upscaler.temporal:
             return self._upscale_predicted_stand_in(frame)
         if frame.meta.flags & FrameFlags.RESET or frame.size != self._last_input_size:
+            self.upscaler.reset()
+            self._last_input_size = frame.size
+        return self.upscaler.upscale(frame, self.display_size)
+
+    def _upscale_color_only(self, frame: RenderFrame) -> torch.Tensor:
+        """A colour-only frame's depth and motion planes are undefined: nothing reads
+        them (no sanitizing either), and a method that needs them gives way for good."""
+        self.color_only = True
+        if needs_gbuffers(self.upscaler.name):
+            log.warning(
+                "frames carry colour only (no depth, motion or jitter): upscaler %s needs "
+                "them, switching to %s",
+                self.upscaler.name,
+                COLOR_ONLY_STAND_IN,
+            )
+            self.upscaler = self._create(COLOR_ONLY_STAND_IN)
+            self._last_input_size = None
+        if frame.size != self._last_input_size:
             self.upscaler.reset()
             self._last_input_size = frame.size
         return self.upscaler.upscale(frame, self.display_size)

@@ -66,6 +66,10 @@ class FrameFlags(IntFlag):
     RESET = 1
     # The frame was predicted (frame generation), not rendered.
     PREDICTED = 2
+    # Only the colour plane is meaningful: the source (a captured X11 display, a video)
+    # has no depth, motion or jitter, and the slot's other planes are undefined. Only
+    # spatial upscalers may run on such a frame and no frame can be predicted from it.
+    COLOR_ONLY = 4
 
 
 @dataclass(frozen=True)

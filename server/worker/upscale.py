@@ -34,8 +34,8 @@ from server.worker.control import (
     parse_message,
 )
 from server.worker.prediction import PredictionStage
-from upscalers import framegen
-from upscalers.host import UpscalerHost
+from upscalers import framegen, registry
+from upscalers.host import UpscalerHost, color_only_methods
 from upscalers.output import quantize_into
 
 log = logging.getLogger(__name__)
@@ -128,7 +128,8 @@ class UpscaleWorker:
                 if predicted is None:
                     return True  # counted in prediction.stats; the stream skips the tick
                 frame = predicted
-            else:
+            elif not meta.flags & FrameFlags.COLOR_ONLY:
+                # A colour-only frame has no depth or motion to predict from.
                 self.prediction.rendered(frame)
             try:
                 result = self.host.upscale(frame)
@@ -181,6 +182,9 @@ class UpscaleWorker:
             "upscaler": self.host.name,
             "cache_policy": self.host.cache_policy,
             "display_size": str(self.host.display_size),
+            # The source's frames carry colour only: the methods that work on them.
+            "color_only": self.host.color_only,
+            "upscalers": color_only_methods() if self.host.color_only else registry.available(),
             "frames": self.stats.frames,
             "errors": self.stats.errors,
             "output_drops": self.stats.output_drops,
