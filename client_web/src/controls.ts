@@ -4,6 +4,10 @@
 import type { InputPublisher } from "./input";
 
 export const UPSCALERS = ["nearest", "bilinear", "bicubic", "lanczos2", "easu", "easu_rcas", "temporal", "unet", "unetpp", "unet_cached"] as const;
+// Methods that read depth, motion and jitter (upscalers/names.py TEMPORAL_UPSCALERS): a
+// captured application (source "x11") has none, so the page disables them there.
+export const NEEDS_GBUFFERS = new Set(["temporal", "unet", "unetpp", "unet_cached"]);
+const COLOR_ONLY_NOTE = "needs depth and motion, which a captured application does not give";
 export const SCALES = [1.5, 2, 3] as const;
 // Layer-cache policies of unet_cached (upscalers/cache/policies; any NAME@VALUE works too).
 export const CACHE_POLICIES = ["delta_l", "delta_h", "budget", "budget@41", "every_2", "every_5", "deepcache", "motion"] as const;
@@ -11,7 +15,7 @@ const CACHED_UPSCALERS = new Set(["unet_cached"]);
 
 /** Keeps the selects on what the server runs, except right after the viewer changed one. */
 export interface Controls {
-	follow(upscaler: unknown, scale: unknown, frameGeneration: unknown, cachePolicy: unknown): void;
+	follow(upscaler: unknown, scale: unknown, frameGeneration: unknown, cachePolicy: unknown, source?: unknown): void;
 }
 
 // After a viewer's change the server takes a moment to switch; until then its records
@@ -41,6 +45,7 @@ export function mountControls(root: HTMLElement, publisher: InputPublisher, view
 	};
 	enableCachePolicy();
 	let changedAt = -Infinity;
+	let currentSource: unknown = undefined; // "game" or "x11", from the timing records
 	upscaler.addEventListener("change", () => {
 		changedAt = performance.now();
 		enableCachePolicy();
@@ -80,7 +85,19 @@ export function mountControls(root: HTMLElement, publisher: InputPublisher, view
 		keyframe,
 	);
 	return {
-		follow(serverUpscaler: unknown, serverScale: unknown, serverFrameGeneration: unknown, serverCachePolicy: unknown): void {
+		follow(serverUpscaler: unknown, serverScale: unknown, serverFrameGeneration: unknown, serverCachePolicy: unknown, source?: unknown): void {
+			if (source !== undefined && source !== currentSource) {
+				currentSource = source;
+				const colorOnly = source !== "game";
+				for (const option of upscaler.options) {
+					option.disabled = colorOnly && NEEDS_GBUFFERS.has(option.value);
+					option.title = option.disabled ? COLOR_ONLY_NOTE : "";
+				}
+				scale.disabled = viewOnly || colorOnly;
+				scale.title = colorOnly ? "a captured application streams at the size it draws at" : "";
+				frameGeneration.disabled = viewOnly || colorOnly;
+				frameGeneration.title = colorOnly ? COLOR_ONLY_NOTE : "render every other frame, predict the rest (same stream fps)";
+			}
 			if (performance.now() - changedAt < HOLD_MS) return;
 			if (typeof serverUpscaler === "string" && serverUpscaler !== upscaler.value) {
 				if ([...upscaler.options].some((o) => o.value === serverUpscaler)) upscaler.value = serverUpscaler;

@@ -68,7 +68,7 @@ function main(): void {
 	};
 	timing.onPresented = (record, presentUs) => {
 		inputToPhoton.presented(record, presentUs);
-		controls.follow(record.upscaler, record.scale, record.frame_generation, record.cache_policy);
+		controls.follow(record.upscaler, record.scale, record.frame_generation, record.cache_policy, record.source);
 		predictedFlags.push(record.predicted === true);
 		if (predictedFlags.length > PREDICTED_WINDOW) predictedFlags.shift();
 	};

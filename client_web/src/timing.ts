@@ -21,6 +21,8 @@ export interface TimingRecord {
 	frame_generation?: boolean;
 	/** The layer-cache policy of a cached upscaler (unet_cached), absent for the others. */
 	cache_policy?: string;
+	/** "game" (the built-in renderer) or "x11" (a captured application: colour only). */
+	source?: string;
 	/** Wall-clock microseconds since the epoch, by stage label. */
 	stamps: Record<string, number>;
 }

@@ -37,6 +37,30 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--metrics-port", type=_port, default=0, help="Prometheus /metrics TCP port (0: off)"
     )
+    x11 = parser.add_argument_group("X11 source (--source x11: stream a real application)")
+    x11.add_argument(
+        "--source",
+        choices=("game", "x11"),
+        default="game",
+        help="game: the built-in renderer (default); x11: capture an X11 display at --size",
+    )
+    x11.add_argument(
+        "--app",
+        default=None,
+        help="the application to start on the display, as one shell-quoted string, "
+        'e.g. "/usr/games/pingus --geometry 640x360" (x11 only)',
+    )
+    x11.add_argument(
+        "--app-exit",
+        choices=("stop", "restart"),
+        default="stop",
+        help="when the application exits: stop the session (default) or restart it",
+    )
+    x11.add_argument(
+        "--x11-display",
+        default=None,
+        help="capture this existing X server (e.g. :0) instead of starting Xvfb",
+    )
 
 
 def _port(text: str) -> int:
@@ -47,6 +71,13 @@ def _port(text: str) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.source == "x11":
+        from server.commands.game_x11 import run_x11
+
+        return run_x11(args)
+    if args.app is not None or args.x11_display is not None:
+        log.error("--app and --x11-display need --source x11")
+        return 2
     import torch
 
     from server.frames.frame import Size

@@ -136,6 +136,7 @@ async def _main(
     from server.quic.moq_link import with_token
     from server.relay.process import RelayProcess
     from server.serve.session_body import LiveSession, SessionPlan, run_game_session
+    from server.stack.local import SourceStopped
 
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
@@ -181,6 +182,9 @@ async def _main(
                 live.session.reconnect()
 
         await run_game_session(plan, stop, on_up=announce, on_tick=check_relay)
+    except SourceStopped as exc:  # the streamed application exited: its code is ours
+        print(f"upcast up: {exc}", file=sys.stderr)
+        code = 0 if exc.code == 0 else 1
     except (RuntimeError, TimeoutError) as exc:  # the game died, or the session never published
         print(f"upcast up: {exc}", file=sys.stderr)
         code = 1

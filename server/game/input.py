@@ -13,6 +13,7 @@ import socket
 import threading
 from collections.abc import Callable
 from pathlib import Path
+from typing import Annotated, Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
@@ -24,6 +25,8 @@ MAX_INPUT_BYTES = 1024
 # Bounds on one event: a browser sending absurd deltas must not teleport the camera.
 MAX_LOOK_DEG = 90.0
 MAX_MOVE_M = 5.0
+MAX_KEYS = 16
+MAX_POINTER_PX = 10_000.0
 
 
 class InputMessage(BaseModel):
@@ -46,23 +49,44 @@ class InputMessage(BaseModel):
     # Frame generation on/off from the next frame on: the game renders every other
     # frame fully and draws only its moving objects on the others.
     frame_generation: bool | None = None
+    # For sources that take raw input (a captured X11 application, server/game/x11):
+    # the browser keys held now (KeyboardEvent.key lower-cased; None: unchanged), the
+    # pointer's position as a fraction of the picture, relative pointer motion in
+    # display pixels, and PointerEvent.buttons (1 primary, 2 secondary, 4 middle).
+    # The built-in renderer reads the camera fields above instead.
+    keys_down: list[Annotated[str, Field(max_length=16)]] | None = Field(
+        default=None, max_length=MAX_KEYS
+    )
+    pointer_x: float | None = Field(default=None, ge=0.0, le=1.0, allow_inf_nan=False)
+    pointer_y: float | None = Field(default=None, ge=0.0, le=1.0, allow_inf_nan=False)
+    pointer_dx: float = Field(
+        default=0.0, ge=-MAX_POINTER_PX, le=MAX_POINTER_PX, allow_inf_nan=False
+    )
+    pointer_dy: float = Field(
+        default=0.0, ge=-MAX_POINTER_PX, le=MAX_POINTER_PX, allow_inf_nan=False
+    )
+    buttons: int | None = Field(default=None, ge=0, le=31)
 
     def to_event(self) -> CameraInput:
         return CameraInput(self.dyaw_deg, self.dpitch_deg, self.forward, self.right, self.up)
 
 
 class InputReceiver:
-    """Binds ``path`` and hands every valid event and its seq to ``sink`` from a daemon thread."""
+    """Binds ``path`` and hands every valid event and its seq to ``sink`` from a daemon
+    thread. The event is ``convert(message)``: the camera input by default; a source
+    that takes raw keys and pointer (X11) asks for the message itself."""
 
     def __init__(
         self,
         path: Path,
-        sink: Callable[[CameraInput, int], None],
+        sink: Callable[[Any, int], None],
         on_scale: Callable[[float], None] | None = None,
         on_jitter: Callable[[bool], None] | None = None,
         on_frame_generation: Callable[[bool], None] | None = None,
+        convert: Callable[[InputMessage], Any] = InputMessage.to_event,
     ) -> None:
         self.path = path
+        self._convert = convert
         self.accepted = 0
         self.refused = 0
         path.unlink(missing_ok=True)
@@ -100,7 +124,7 @@ class InputReceiver:
                 self._on_jitter(message.jitter)
             if message.frame_generation is not None and self._on_frame_generation is not None:
                 self._on_frame_generation(message.frame_generation)
-            self._sink(message.to_event(), message.seq)
+            self._sink(self._convert(message), message.seq)
 
     def close(self) -> None:
         self._stop.set()

@@ -31,16 +31,27 @@ from server.frames.ring import FrameRing
 from server.frames.ring_frames import write_meta
 from server.frames.timing import Stage, stamp
 from server.game.render.renderer import RenderTargets
-from server.game.render.scene import Scene
 
 log = logging.getLogger(__name__)
+
+
+class SourceEnded(Exception):
+    """Raised by a renderer to end the run for good (a captured application exited,
+    its display is gone): the loop stops instead of skipping the frame."""
+
+    def __init__(self, reason: str, code: int = 0) -> None:
+        super().__init__(reason)
+        self.code = code
 
 
 class FrameRenderer(Protocol):
     """What the loop needs of a renderer (server.game.render.Renderer is one)."""
 
     render_size: Size
-    scene: Scene
+
+    def scene_cut_between(self, t0: float, t1: float) -> bool:
+        """Whether the picture jumps between game times t0 and t1 (no prediction across)."""
+        ...
 
     def render(
         self, frame_index: int, t: float, targets: RenderTargets | None = None
@@ -85,6 +96,7 @@ class GameLoop:
         self.ring = ring
         self.fps = fps
         self.stats = GameStats()
+        self.ended: SourceEnded | None = None  # why run() stopped early, if it did
         self._inputs: queue.SimpleQueue[tuple[Any, int]] = queue.SimpleQueue()
         self.input_seq = 0  # last applied player input (see FrameMeta.input_seq)
         # The size the worker upscales to; render size = display / scale.
@@ -154,7 +166,7 @@ class GameLoop:
         if not self.frame_generation or self._force_full or last is None:
             return False
         last_index, last_t = last
-        return last_index == frame_index - 1 and not self.renderer.scene.cut_between(last_t, t)
+        return last_index == frame_index - 1 and not self.renderer.scene_cut_between(last_t, t)
 
     def _drain_inputs(self) -> None:
         while True:
@@ -188,6 +200,8 @@ class GameLoop:
                     frame = self.renderer.render_dynamic(frame_index, t, targets)
                 else:
                     frame = self.renderer.render(frame_index, t, targets)
+            except SourceEnded:
+                raise
             except Exception:
                 self.stats.render_errors += 1
                 log.exception("render of frame %d failed; frame skipped", frame_index)
@@ -236,7 +250,12 @@ class GameLoop:
             elif now - next_deadline > period:
                 self.stats.late_frames += 1
                 next_deadline = now  # resync: never render a burst to catch up
-            self.step(index)
+            try:
+                self.step(index)
+            except SourceEnded as ended:
+                log.info("game: the source ended: %s", ended)
+                self.ended = ended
+                break
             index += 1
             next_deadline += period
             if now - last_report >= 10.0:

@@ -99,6 +99,7 @@ async def run_game_session(
             gop_seconds=stream.gop_seconds,
             cert_hash_hex=plan.cert_hash_hex,
             upscaler=config.upscaler,
+            source=config.source,
             scale=config.scale,
             frame_generation=config.frame_generation,
             cache_policy=upscaler_registry.cache_policy_at_start(

@@ -34,6 +34,7 @@ from upscalers import registry
 log = logging.getLogger(__name__)
 
 MAX_HELD = 64  # viewers whose held keys we track
+MAX_GAME_KEYS = 16  # keys held at once sent to a captured application (server/game/input.py)
 
 
 class InputRouter:
@@ -48,8 +49,15 @@ class InputRouter:
         on_frame_generation: Callable[[bool], None] | None = None,
         on_cache_policy: Callable[[str | None], None] | None = None,
         on_control_result: Callable[[ControlResult], None] | None = None,
+        color_only: bool = False,
     ) -> None:
+        """``color_only``: the game is a captured application (source x11): it takes the
+        viewers' raw keys, pointer and buttons, and no method that needs depth or motion,
+        no scale change and no frame generation applies to it."""
         self.game_input = game_input
+        self.color_only = color_only
+        # Raw keys each viewer holds (keyboard and gamepad), for a colour-only source.
+        self.raw_keys: dict[str, frozenset[str]] = {}
         self.worker_control = worker_control
         self.request_keyframe = request_keyframe
         self.on_upscaler_set = on_upscaler_set
@@ -79,6 +87,8 @@ class InputRouter:
         self.accepted += 1
         if isinstance(message, LookMessage):
             self._to_game(look_input(message))
+        elif isinstance(message, KeysMessage) and self.color_only:
+            self._raw_keys(source, frozenset(k.lower() for k in message.down), message.seq)
         elif isinstance(message, KeysMessage):
             held = self.held.get(source)
             if held is None:
@@ -98,6 +108,19 @@ class InputRouter:
     def forget(self, source: str) -> None:
         """The viewer left: its held keys are released."""
         self.held.pop(source, None)
+        if self.raw_keys.pop(source, None):
+            self._to_game(InputMessage(keys_down=self._all_raw_keys()))
+
+    def _raw_keys(self, source: str, keys: frozenset[str], seq: int) -> None:
+        """A viewer's held keys changed: the application gets the union of every viewer's."""
+        if source not in self.raw_keys and len(self.raw_keys) >= MAX_HELD:
+            return
+        self.raw_keys[source] = keys
+        self._to_game(InputMessage(keys_down=self._all_raw_keys(), seq=seq))
+
+    def _all_raw_keys(self) -> list[str]:
+        union = set().union(*self.raw_keys.values()) if self.raw_keys else set()
+        return sorted(union)[:MAX_GAME_KEYS]
 
     def tick(self) -> None:
         """Called once per game frame: held keys keep moving the camera."""
@@ -157,6 +180,8 @@ class InputRouter:
         ):
             # Refused before the switch, so the request is not half-applied.
             problems.append(f"cache_policy: upscaler {message.upscaler!r} has no layer cache")
+        if self.color_only:
+            problems += _color_only_problems(message)
         for name in ("upscaler", "cache_policy"):
             if name in requested and self.worker_control is None:
                 problems.append(f"{name}: this session has no worker control socket")
@@ -218,7 +243,8 @@ class InputRouter:
             if refused is None:
                 log.info("upscaler switched to %s", upscaler)
                 # Jitter only helps a method that accumulates it; otherwise it is shimmer.
-                self._to_game(InputMessage(jitter=registry.is_temporal(upscaler)))
+                if not self.color_only:
+                    self._to_game(InputMessage(jitter=registry.is_temporal(upscaler)))
                 if self.on_upscaler_set is not None:
                     self.on_upscaler_set(upscaler)
         if cache_policy is not None and (upscaler is None or refused is None):
@@ -243,3 +269,22 @@ class InputRouter:
             policy = reply.get("cache_policy")
             self.on_cache_policy(policy if isinstance(policy, str) else None)
         return None
+
+
+def _color_only_problems(message: ControlMessage) -> list[str]:
+    """What a colour-only source (a captured application) cannot do."""
+    problems = []
+    if message.upscaler is not None and registry.is_temporal(message.upscaler):
+        spatial = [m for m in registry.available() if not registry.is_temporal(m)]
+        problems.append(
+            f"upscaler: {message.upscaler!r} needs depth, motion and jitter, which this "
+            f"source (a captured application) does not give; available: {', '.join(spatial)}"
+        )
+    if message.scale is not None:
+        problems.append(
+            "scale: this source is captured at the size the application draws at; "
+            "it cannot change at run time"
+        )
+    if message.frame_generation:
+        problems.append("frame_generation: needs depth and motion, which this source does not give")
+    return problems

@@ -52,6 +52,8 @@ class StreamSettings:
     frame_generation: bool | None = None  # whether the game starts predicting every other frame
     cache_policy: str | None = None  # the layer-cache policy the worker starts with, if any
     token: str | None = None  # JWT for the relay (sent as ?jwt=); None: an open relay
+    # "game": the built-in renderer; "x11": a captured application (colour only; raw input)
+    source: str = "game"
 
 
 class StreamingSession:
@@ -89,6 +91,7 @@ class StreamingSession:
             on_scale_request=self._scale_requested,
             on_frame_generation=self._frame_generation_set,
             on_cache_policy=self._cache_policy_set,
+            color_only=settings.source != "game",
         )
         self._on_upscaler_set = on_upscaler_set
         self._on_scale_request = on_scale_request
@@ -98,6 +101,9 @@ class StreamingSession:
             on_input=self.router.handle,
             on_keyframe_wanted=self.encoder.request_keyframe,
         )
+        # The page disables what the source cannot do (a captured application: methods
+        # that need depth and motion, scale changes, frame generation).
+        self.broadcast.stream_state["source"] = settings.source
         if settings.upscaler is not None:
             self.broadcast.stream_state["upscaler"] = settings.upscaler
         if settings.scale is not None:

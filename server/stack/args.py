@@ -47,6 +47,31 @@ def add_session_arguments(parser: argparse.ArgumentParser) -> None:
         help="layer-cache policy of the unet_cached upscaler: delta_l (default), delta_h, "
         "budget, budget@DB, every_N, deepcache, motion (switchable at run time)",
     )
+    x11 = parser.add_argument_group("stream a real application (--source x11)")
+    x11.add_argument(
+        "--source",
+        choices=("game", "x11"),
+        default="game",
+        help="game: the built-in renderer (default); x11: an application on a virtual X "
+        "display (Xvfb) of --render-size, captured and streamed; spatial upscalers only",
+    )
+    x11.add_argument(
+        "--app",
+        default=None,
+        help='x11: the application, one quoted command line, e.g. "/usr/games/pingus '
+        '--geometry 640x360" (make it draw at --render-size)',
+    )
+    x11.add_argument(
+        "--app-exit",
+        choices=("stop", "restart"),
+        default="stop",
+        help="x11: when the application exits, stop the session (default) or restart it",
+    )
+    x11.add_argument(
+        "--x11-display",
+        default=None,
+        help="x11: capture this running X server (e.g. :0) instead of starting Xvfb",
+    )
 
 
 def session_config_from(args: argparse.Namespace, sessions: int = 1) -> SessionConfig | None:
@@ -77,6 +102,10 @@ def session_config_from(args: argparse.Namespace, sessions: int = 1) -> SessionC
         frame_generation=args.frame_generation,
         predictor=args.predictor,
         cache_policy=args.cache_policy,
+        source=args.source,
+        app=args.app,
+        app_exit=args.app_exit,
+        x11_display=args.x11_display,
     )
 
 

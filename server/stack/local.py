@@ -11,12 +11,14 @@ from __future__ import annotations
 
 import logging
 import os
+import shlex
 import subprocess
 import sys
 import tempfile
 import time
 import uuid
 from pathlib import Path
+from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
@@ -25,8 +27,26 @@ from server.frames.frame import Size
 from server.frames.ring import SHM_DIR, FrameRing
 from server.frames.ring_frames import create_display_ring, create_render_ring
 from upscalers import registry
+from upscalers.names import TEMPORAL_UPSCALERS, UPSCALERS
 
 log = logging.getLogger(__name__)
+
+
+# The game process's exit code when its X display died (server/game/x11/source.py;
+# not imported from there: that module needs the X11 libraries).
+DISPLAY_GONE_CODE = 70
+
+
+class SourceStopped(RuntimeError):
+    """The session's source ended for good (an X11 application exited)."""
+
+    def __init__(self, message: str, code: int) -> None:
+        super().__init__(message)
+        self.code = code
+
+
+def color_only_upscalers() -> list[str]:
+    return [m for m in UPSCALERS if m not in TEMPORAL_UPSCALERS]
 
 
 class SessionConfig(BaseModel):
@@ -57,6 +77,22 @@ class SessionConfig(BaseModel):
         "every_N, deepcache, motion; None: delta_l); switchable at run time",
     )
     seed: int = Field(default=0, description="scene seed")
+    source: Literal["game", "x11"] = Field(
+        default="game",
+        description="game: the built-in renderer; x11: an application on an X11 display, "
+        "captured at render_size (colour only: spatial upscalers, no frame generation)",
+    )
+    app: str | None = Field(
+        default=None,
+        description="x11: the application to start, one shell-quoted command line",
+    )
+    app_exit: Literal["stop", "restart"] = Field(
+        default="stop",
+        description="x11: when the application exits, stop the session or restart it",
+    )
+    x11_display: str | None = Field(
+        default=None, description="x11: capture this existing X server (:N) instead of a new Xvfb"
+    )
     game_threads: int = Field(default=1, ge=1, description="torch threads in the game")
     worker_threads: int = Field(
         default=1, ge=1, description="CPU threads in the worker (torch and numba's kernels)"
@@ -75,6 +111,30 @@ class SessionConfig(BaseModel):
         if v not in SCENE_NAMES:
             raise ValueError(f"unknown scene {v!r}; allowed: {', '.join(SCENE_NAMES)}")
         return v
+
+    @model_validator(mode="after")
+    def _source_fits(self) -> SessionConfig:
+        if self.source == "game":
+            for name in ("app", "x11_display"):
+                if getattr(self, name) is not None:
+                    raise ValueError(f"{name} applies to source 'x11' only (source is 'game')")
+            return self
+        if self.app is None and self.x11_display is None:
+            raise ValueError("source 'x11' needs app (a program to start) or x11_display")
+        if self.app is not None:
+            try:
+                if not shlex.split(self.app):
+                    raise ValueError("app is empty")
+            except ValueError as exc:
+                raise ValueError(f"app {self.app!r} is not a command line: {exc}") from None
+        if self.upscaler in TEMPORAL_UPSCALERS:
+            raise ValueError(
+                f"upscaler {self.upscaler!r} needs depth, motion and jitter, which source "
+                f"'x11' does not give; use one of {', '.join(color_only_upscalers())}"
+            )
+        if self.frame_generation:
+            raise ValueError("frame_generation needs depth and motion: not with source 'x11'")
+        return self
 
     @model_validator(mode="after")
     def _render_not_larger(self) -> SessionConfig:
@@ -148,19 +208,35 @@ class LocalStack:
         self.ring_r = create_render_ring(self.ring_r_name, display, slots=c.slots)
         self.ring_u = create_display_ring(self.ring_u_name, display, slots=c.slots)
         self.worker = self._spawn_worker()
-        game_args = [
-            "game", "--ring", self.ring_r_name, "--scene", c.scene, "--size", c.render_size,
-            "--scale", f"{c.scale:.6g}", "--fps", f"{c.fps:g}", "--seed", str(c.seed),
-            "--threads", str(c.game_threads), "--input", str(self.input_path),
-            "--jitter" if registry.is_temporal(c.upscaler) else "--no-jitter",
-            "--frame-generation" if c.frame_generation else "--no-frame-generation",
-        ]  # fmt: skip
+        game_args = self._game_args() if c.source == "game" else self._x11_args()
         if self._game_duration_s is not None:
             game_args += ["--duration", f"{self._game_duration_s:g}"]
         if self.game_metrics_port:
             game_args += ["--metrics-port", str(self.game_metrics_port)]
         self.game = subprocess.Popen(_cli(*game_args), env=_child_env())
         log.info("session %s: game pid %d, worker pid %d", c.name, self.game.pid, self.worker.pid)
+
+    def _x11_args(self) -> list[str]:
+        c = self.config
+        args = [
+            "game", "--source", "x11", "--ring", self.ring_r_name, "--size", c.render_size,
+            "--fps", f"{c.fps:g}", "--input", str(self.input_path), "--app-exit", c.app_exit,
+        ]  # fmt: skip
+        if c.app is not None:
+            args += ["--app", c.app]
+        if c.x11_display is not None:
+            args += ["--x11-display", c.x11_display]
+        return args
+
+    def _game_args(self) -> list[str]:
+        c = self.config
+        return [
+            "game", "--ring", self.ring_r_name, "--scene", c.scene, "--size", c.render_size,
+            "--scale", f"{c.scale:.6g}", "--fps", f"{c.fps:g}", "--seed", str(c.seed),
+            "--threads", str(c.game_threads), "--input", str(self.input_path),
+            "--jitter" if registry.is_temporal(c.upscaler) else "--no-jitter",
+            "--frame-generation" if c.frame_generation else "--no-frame-generation",
+        ]  # fmt: skip
 
     def _spawn_worker(self) -> subprocess.Popen[bytes]:
         c = self.config
@@ -210,8 +286,20 @@ class LocalStack:
             )
             self.control_path.unlink(missing_ok=True)
             self.worker = self._spawn_worker()
-        if self.game is not None and self.game.poll() not in (None, 0):
-            raise RuntimeError(f"game process exited with code {self.game.returncode}")
+        if self.game is None or self.game.poll() is None:
+            return
+        code = self.game.returncode
+        if self.config.source == "x11":
+            # The game process ends when the application does (or its display died):
+            # the session has nothing left to stream, whatever the code.
+            raise SourceStopped(
+                f"the application exited (code {code}); the session stops"
+                if code != DISPLAY_GONE_CODE
+                else "the X display is gone; the session stops",
+                code,
+            )
+        if code != 0:
+            raise RuntimeError(f"game process exited with code {code}")
 
     def stop(self) -> None:
         for proc in (self.game, self.worker):

@@ -177,6 +177,9 @@ class Renderer:
             self._entries_by_bias[bias] = entries
         return entries
 
+    def scene_cut_between(self, t0: float, t1: float) -> bool:
+        return self.scene.cut_between(t0, t1)
+
     def apply_input(self, event: CameraInput) -> None:
         """Player input, applied from the next rendered frame on."""
         self.game_camera.apply_input(event)
