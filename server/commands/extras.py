@@ -20,6 +20,8 @@ GAME_MODULES: dict[str, str] = {
     "flip_evaluator": "flip-evaluator",
     "matplotlib": "matplotlib",
     "cv2": "opencv-python-headless",
+    "mss": "mss",
+    "Xlib": "python-xlib",
 }
 
 
