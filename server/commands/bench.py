@@ -18,6 +18,7 @@ BENCHMARKS: dict[str, str] = {
     "reframe": "layer caching on the neural upscaler: policies, levels, speedup against FLIP",
     "adversary": "relay under attack scenarios: good viewers' fps, relay CPU and RSS, refusals",
     "resample": "our plain resamplers against OpenCV's resize: level difference and time",
+    "capture": "X11 screen capture (Xvfb) per grabber against memcpy: ms per frame, exact pixels",
 }
 
 

@@ -3,9 +3,11 @@
 Each grabber holds one connection and writes the top-left ``out.shape`` pixels
 of the screen into ``out`` as RGB; ``ScreenCapture`` (capture.py) does the
 clamping, reconnecting and error mapping around them, so a grabber stays a thin
-adapter over its library. Measured by ``upcast bench capture``: mss's
-XShmGetImage is the default (about 0.25 ms at 640x360 against 1.2 ms for
-python-xlib's XGetImage and 0.8 ms for PyAV's x11grab).
+adapter over its library. Measured by ``upcast bench capture``
+(docs/reports/capture.json, 2 shared cores): mss's XShmGetImage is the default,
+median 0.44 ms at 640x360 and 1.6 ms at 1280x720, against 0.88 / 3.8 ms for
+mss's XGetImage, 0.99 / 2.8 ms for PyAV's x11grab and 1.7 / 10.5 ms for
+python-xlib's XGetImage (pure Python socket reads).
 """
 
 from __future__ import annotations
