@@ -97,10 +97,11 @@ def test_the_screen_shrinking_and_growing_back_under_the_capture(
         capture.close()
 
 
-def test_killing_the_server_raises_display_gone_within_a_second() -> None:
+@pytest.mark.parametrize("grabber", list(GRABBERS))
+def test_killing_the_server_raises_display_gone_within_a_second(grabber: str) -> None:
     display = VirtualDisplay.start(W, H)
     try:
-        capture = ScreenCapture(display.name, W, H)
+        capture = ScreenCapture(display.name, W, H, grabber=grabber)
         out = np.zeros((H, W, 3), np.uint8)
         capture.grab_into(out)
         os.kill(display.pid, signal.SIGKILL)

@@ -19,12 +19,11 @@ from server.game.x11.grabbers import Frame
 class X11GrabGrabber:
     def __init__(self, display_name: str) -> None:
         self._name = display_name
-        probe = xdisplay.Display(display_name)
-        try:
-            screen = probe.screen()
-            self._size = (int(screen.width_in_pixels), int(screen.height_in_pixels))
-        finally:
-            probe.close()
+        # FFmpeg's device goes on returning its last picture when the server dies:
+        # this idle connection notices (its socket reads EOF) at no round trip's cost.
+        self._watch = xdisplay.Display(display_name)
+        screen = self._watch.screen()
+        self._size = (int(screen.width_in_pixels), int(screen.height_in_pixels))
         self._region: tuple[int, int] | None = None
         self._container: av.container.InputContainer | None = None
         self._frames: Iterator[av.video.frame.VideoFrame] | None = None
@@ -33,7 +32,7 @@ class X11GrabGrabber:
         return self._size
 
     def _open(self, w: int, h: int) -> Iterator[av.video.frame.VideoFrame]:
-        self.close()
+        self._close_device()
         self._container = av.open(
             f"{self._name}+0,0",
             format="x11grab",
@@ -44,6 +43,7 @@ class X11GrabGrabber:
         return self._frames
 
     def grab_into(self, out: Frame) -> None:
+        self._watch.pending_events()  # raises ConnectionClosedError once the server is gone
         h, w = out.shape[:2]
         frames = self._frames if self._region == (w, h) else None
         if frames is None:
@@ -51,6 +51,10 @@ class X11GrabGrabber:
         out[...] = next(frames).to_ndarray(format="rgb24")
 
     def close(self) -> None:
+        self._close_device()
+        self._watch.close()
+
+    def _close_device(self) -> None:
         if self._container is not None:
             self._container.close()
         self._container = None
