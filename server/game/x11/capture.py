@@ -43,8 +43,12 @@ class ScreenCapture:
         self.grabber_name = grabber
         try:
             self._grabber: Grabber | None = GRABBERS[grabber](display_name)
+        except DisplayError:
+            raise
         except Exception as exc:
-            raise DisplayError(f"cannot open display {display_name}: {exc}") from exc
+            raise DisplayError(
+                f"cannot open display {display_name} for capture ({grabber}): {exc}"
+            ) from exc
         self._connected_at = time.monotonic()
 
     def _region(self) -> tuple[int, int]:

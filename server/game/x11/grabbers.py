@@ -20,7 +20,11 @@ import mss
 import numpy as np
 import numpy.typing as npt
 
+from server.game.x11.errors import DisplayError
+
 Frame = npt.NDArray[np.uint8]
+# The shared libraries mss opens at run time (no wheel ships them).
+XCB_PACKAGES = "libxcb1 libxcb-randr0 libxcb-render0 libxcb-shm0 libxcb-xfixes0"
 
 
 class Grabber(Protocol):
@@ -48,7 +52,12 @@ class MssGrabber:
     """mss: XShmGetImage into a shared segment (``backend="xshmgetimage"``) or XGetImage."""
 
     def __init__(self, display_name: str, backend: str = "xshmgetimage") -> None:
-        self._mss = mss.MSS(display=display_name, backend=backend)
+        try:
+            self._mss = mss.MSS(display=display_name, backend=backend)
+        except mss.ScreenShotError as exc:
+            if "not found" in str(exc):  # mss loads the XCB libraries with ctypes
+                raise DisplayError(f"{exc}: install Debian's packages {XCB_PACKAGES}") from exc
+            raise
         root = self._mss.monitors[0]
         self._size = (int(root["width"]), int(root["height"]))
 
