@@ -4,12 +4,18 @@
 // game session announces interest in `<broadcast>/input/` and subscribes each viewer.
 import * as Moq from "@moq/lite";
 import { wallMs } from "./clock";
+import { PlayerFocus } from "./focus";
+import { type GamepadState, GamepadPoller } from "./gamepad";
+import { keyName, MOVEMENT_KEYS } from "./keys";
+import { type PointerState, PointerCapture } from "./pointer";
 
 export const INPUT_TRACK = "input";
 
 export type InputMessage =
 	| { type: "keys"; down: string[] }
 	| { type: "look"; dx: number; dy: number }
+	| ({ type: "pointer" } & PointerState)
+	| ({ type: "gamepad" } & GamepadState)
 	| { type: "control"; upscaler?: string; scale?: number; frame_generation?: boolean; cache_policy?: string }
 	| { type: "keyframe" };
 
@@ -87,25 +93,22 @@ export class InputPublisher {
 	}
 }
 
-// KeyboardEvent.key (lower-cased) -> name the game understands (server/session/viewer_input.py).
-const KEY_NAMES: Record<string, string> = {
-	w: "w",
-	a: "a",
-	s: "s",
-	d: "d",
-	arrowup: "arrowup",
-	arrowdown: "arrowdown",
-	arrowleft: "arrowleft",
-	arrowright: "arrowright",
-	" ": "space",
-	c: "c",
-};
+const MAX_KEYS = 16; // server/session/viewer_input.py MAX_KEYS: more is refused
 
-/** Keyboard and mouse on `target` -> keys/look messages. */
+/**
+ * Keyboard, mouse and gamepads on `target` -> keys / look / pointer / gamepad messages.
+ * The movement keys are the page's anywhere (as always); every other game key, and the
+ * pointer without a button down on the picture, only while the player has focus (a
+ * click on the picture; a click elsewhere gives the page its keys back).
+ */
 export class InputCapture {
-	readonly #held = new Set<string>();
+	// KeyboardEvent.code -> the name sent: a key is released by the same physical key even
+	// when shift changed its `key` in between ("1" down, shift, "!" up).
+	readonly #held = new Map<string, string>();
 	readonly #publisher: InputPublisher;
 	readonly #target: HTMLElement;
+	readonly #focus: PlayerFocus;
+	readonly #pointer: PointerCapture;
 	#dragging = false;
 	// Mouse deltas are summed and flushed once per animation frame: one message per
 	// displayed frame is as fine-grained as the game can use.
@@ -118,30 +121,55 @@ export class InputCapture {
 	constructor(target: HTMLElement, publisher: InputPublisher) {
 		this.#target = target;
 		this.#publisher = publisher;
+		this.#focus = new PlayerFocus(target);
+		this.#pointer = new PointerCapture(target, (state) => publisher.send({ type: "pointer", ...state }), () => this.#focus.focused);
+		this.#focus.onBlur = () => {
+			this.#releaseAll();
+			this.#pointer.release();
+		};
+		new GamepadPoller((state) => publisher.send({ type: "gamepad", ...state }));
 		window.addEventListener("keydown", this.#keydown);
 		window.addEventListener("keyup", this.#keyup);
 		// Releasing keys while the page is in the background would otherwise be missed.
-		window.addEventListener("blur", this.#releaseAll);
+		window.addEventListener("blur", () => {
+			this.#releaseAll();
+			this.#pointer.release();
+		});
 		target.addEventListener("pointerdown", this.#pointerdown);
 		window.addEventListener("pointerup", this.#pointerup);
 		window.addEventListener("pointermove", this.#pointermove);
 	}
 
+	#down(): string[] {
+		return [...new Set(this.#held.values())];
+	}
+
 	#keydown = (event: KeyboardEvent): void => {
 		if (isFormField(event.target)) return;
-		const name = KEY_NAMES[event.key.toLowerCase()];
-		if (!name) return;
-		event.preventDefault(); // arrows and space would scroll the page
-		if (this.#held.has(name)) return; // auto-repeat: state unchanged
-		this.#held.add(name);
-		const sent = this.#publisher.send({ type: "keys", down: [...this.#held] });
+		// Cmd+key: the browser's and the OS's (macOS never sends the key's keyup).
+		if (event.metaKey) return;
+		const name = keyName(event);
+		if (!name || !(MOVEMENT_KEYS.has(name) || this.#focus.focused)) return;
+		// Ctrl+W, Ctrl+R, Ctrl+T... stay the browser's; the game still sees the keys
+		// (ctrl+arrow is "run" in SuperTux).
+		if (!event.ctrlKey) event.preventDefault(); // arrows and space would scroll, tab move focus
+		const id = event.code || name;
+		if (this.#held.has(id)) return; // auto-repeat: state unchanged
+		const down = this.#down();
+		if (!down.includes(name) && down.length >= MAX_KEYS) return;
+		this.#held.set(id, name);
+		if (down.includes(name)) return; // the other shift: the name was already held
+		const sent = this.#publisher.send({ type: "keys", down: this.#down() });
 		this.onPress?.(sent.seq, sent.sent_ms);
 	};
 
 	#keyup = (event: KeyboardEvent): void => {
-		const name = KEY_NAMES[event.key.toLowerCase()];
-		if (!name || !this.#held.delete(name)) return;
-		this.#publisher.send({ type: "keys", down: [...this.#held] });
+		const name = keyName(event);
+		const id = event.code || name;
+		if (!id || !this.#held.has(id)) return;
+		const before = this.#down().length;
+		this.#held.delete(id);
+		if (this.#down().length !== before) this.#publisher.send({ type: "keys", down: this.#down() });
 	};
 
 	#releaseAll = (): void => {
