@@ -9,6 +9,9 @@ with the same authentication and limits as everything else.
 Held keys are state, not events: the page sends the set of keys held when it
 changes; ``HeldKeys`` turns that into one movement step per game frame, so the
 camera moves at the same speed whatever the network does with the messages.
+The pointer (absolute, with buttons) and gamepads are state too, for real
+applications under X11: each message is the whole state, so a lost or late one
+is corrected by the next.
 """
 
 from __future__ import annotations
@@ -24,6 +27,21 @@ MAX_MESSAGE_BYTES = 2048
 LOOK_DEG_PER_PX = 0.2  # drag right by 5 px: turn right by 1 degree
 MOVE_SPEED_M_S = 3.0
 MAX_KEYS = 16
+# PointerEvent.buttons, a bit mask: 1 primary, 2 secondary, 4 middle, 8 back, 16 forward.
+MAX_POINTER_BUTTONS = 31
+MAX_GAMEPADS = 4  # navigator.getGamepads() has 4 slots in Chromium and Firefox
+MAX_GAMEPAD_BUTTONS = 32  # the standard layout has 17; room for odd pads, still bounded
+MAX_GAMEPAD_AXES = 8  # standard: 4 (two sticks)
+
+# Every key name the page sends (client_web/src/keys.ts, KeyboardEvent.key lower-cased,
+# " " as "space"); a gamepad key map may only name these, so its keys take the same
+# path to the application as the keyboard's.
+PAGE_KEYS: frozenset[str] = frozenset(
+    [*"abcdefghijklmnopqrstuvwxyz0123456789", *"-=[]\\;',./`"]
+    + ["arrowup", "arrowdown", "arrowleft", "arrowright", "space", "enter", "escape"]
+    + ["tab", "backspace", "shift", "control", "alt"]
+    + [f"f{n}" for n in range(1, 13)]
+)
 
 # Browser key names (KeyboardEvent.key, lower-cased) -> (forward, right, up) direction.
 KEY_DIRECTIONS: dict[str, tuple[float, float, float]] = {
@@ -64,8 +82,34 @@ class KeyframeMessage(_Base):
     type: Literal["keyframe"]
 
 
+_Unit = Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)]
+_Axis = Annotated[float, Field(ge=-1, le=1, allow_inf_nan=False)]
+_ButtonIndex = Annotated[int, Field(strict=True, ge=0, lt=MAX_GAMEPAD_BUTTONS)]
+
+
+class PointerMessage(_Base):
+    """The pointer over the picture: x, y in 0..1 of the video picture (not the element:
+    letterbox bars excluded), and the PointerEvent.buttons bit mask held."""
+
+    type: Literal["pointer"]
+    x: _Unit
+    y: _Unit
+    buttons: int = Field(strict=True, ge=0, le=MAX_POINTER_BUTTONS)
+
+
+class GamepadMessage(_Base):
+    """One gamepad's whole state (W3C Gamepad API): the indices of its pressed buttons
+    and its axes (a dead zone already applied by the page)."""
+
+    type: Literal["gamepad"]
+    index: int = Field(strict=True, ge=0, lt=MAX_GAMEPADS)
+    buttons: list[_ButtonIndex] = Field(max_length=MAX_GAMEPAD_BUTTONS)
+    axes: list[_Axis] = Field(max_length=MAX_GAMEPAD_AXES)
+
+
 ViewerMessage = Annotated[
-    LookMessage | KeysMessage | ControlMessage | KeyframeMessage, Field(discriminator="type")
+    LookMessage | KeysMessage | ControlMessage | KeyframeMessage | PointerMessage | GamepadMessage,
+    Field(discriminator="type"),
 ]
 _VIEWER_MESSAGE: TypeAdapter[ViewerMessage] = TypeAdapter(ViewerMessage)
 
@@ -94,6 +138,9 @@ def look_input(message: LookMessage) -> InputMessage:
     return InputMessage(
         dyaw_deg=clamp(-message.dx * LOOK_DEG_PER_PX),
         dpitch_deg=clamp(-message.dy * LOOK_DEG_PER_PX),
+        # The same drag as relative pointer motion, for a captured application.
+        pointer_dx=message.dx,
+        pointer_dy=message.dy,
         seq=message.seq,
     )
 
