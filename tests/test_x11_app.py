@@ -102,3 +102,13 @@ def test_a_file_that_is_not_executable_is_a_clear_error(tmp_path: Path) -> None:
     game.write_text("#!/bin/sh\n")
     with pytest.raises(ApplicationError, match="not executable"):
         Application.start([str(game)], dict(os.environ))
+
+
+def test_a_relative_path_is_found_from_the_working_directory_given(tmp_path: Path) -> None:
+    game = tmp_path / "bin" / "game.sh"
+    game.parent.mkdir()
+    game.write_text("#!/bin/sh\nexit 7\n")
+    game.chmod(0o755)
+    app = Application.start(["./bin/game.sh"], dict(os.environ), cwd=str(tmp_path))
+    _wait_for(lambda: app.exit_code() is not None)
+    assert app.stop() == 7

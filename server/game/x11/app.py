@@ -52,8 +52,10 @@ class Application:
             raise ApplicationError("no command given")
         exe = command[0]
         search_path = env.get("PATH", os.defpath)
-        if shutil.which(exe, path=search_path) is None:
-            why = "not executable" if os.path.exists(exe) else "not found"
+        # A path with a slash is not searched, and is relative to the program's cwd.
+        where = os.path.join(cwd or ".", exe) if os.sep in exe else exe
+        if shutil.which(where, path=search_path) is None:
+            why = "not executable" if os.path.exists(where) else "not found"
             raise ApplicationError(f"cannot start {exe!r}: {why} (PATH={search_path})")
         name = os.path.basename(exe)
         out: IO[bytes] | int = subprocess.PIPE

@@ -3,7 +3,9 @@
 The viewer side sends state (keys held, buttons held, pointer position), not
 events; the injector diffs each new state against the last one it sent and
 fakes only the changes, so a lost or repeated state message cannot leave a key
-stuck down or pressed twice. One python-xlib connection, one flush per call: an
+stuck down or pressed twice. One python-xlib connection, one round trip per
+call (sync, not just flush: the server has applied the input when the call
+returns, whatever its other clients asked meanwhile, about 0.1 ms): an
 xdotool process per event would cost milliseconds each.
 """
 
@@ -64,7 +66,7 @@ class InputInjector:
     def _send(self, fake: Callable[[], T]) -> T:
         try:
             result = fake()
-            self._display.flush()
+            self._display.sync()
         except (xerror.ConnectionClosedError, OSError) as exc:
             raise DisplayGone(f"display {self.display_name} is gone ({exc})") from exc
         return result
