@@ -144,6 +144,7 @@ class LiveStack:
             bitrate=self._bitrate,
             cert_hash_hex=self.endpoint.cert_sha256,
             frame_generation=self.config.frame_generation,
+            source=self.config.source,
         )
         self.session = StreamingSession(
             settings,

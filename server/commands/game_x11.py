@@ -16,6 +16,10 @@ import threading
 
 log = logging.getLogger(__name__)
 
+# Exit code when the source could not start (bad --app, no Xvfb, no display): the
+# stack tells it from the application's own codes (sysexits' EX_CONFIG).
+SOURCE_FAILED_CODE = 78
+
 
 def run_x11(args: argparse.Namespace) -> int:
     from server.frames.frame import Size
@@ -23,6 +27,7 @@ def run_x11(args: argparse.Namespace) -> int:
     from server.game.input import InputReceiver
     from server.game.loop import GameLoop
     from server.game.metrics import game_registry
+    from server.game.x11.app import ApplicationError
     from server.game.x11.errors import DisplayError
     from server.game.x11.source import X11Source
     from server.ops.metrics import serve_metrics
@@ -44,9 +49,9 @@ def run_x11(args: argparse.Namespace) -> int:
     size = Size.parse(args.size)
     try:
         source = X11Source(size, command, display=args.x11_display, on_app_exit=args.app_exit)
-    except (DisplayError, FileNotFoundError, PermissionError) as exc:
+    except (DisplayError, ApplicationError, OSError) as exc:
         log.error("X11 source: %s", exc)
-        return 2
+        return SOURCE_FAILED_CODE
     try:
         ring = attach_render_ring(args.ring, wait_s=10)
         loop = GameLoop(source, ring, args.fps)

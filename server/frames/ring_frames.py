@@ -20,6 +20,9 @@ from server.frames.ring import (
 
 SlotHeader = np.ndarray  # a 0-d structured view of SLOT_HEADER
 
+# Bits a producer may set that mean something here; unknown bits are dropped.
+KNOWN_FLAGS = FrameFlags.RESET | FrameFlags.PREDICTED | FrameFlags.COLOR_ONLY
+
 
 def write_meta(header: SlotHeader, meta: FrameMeta) -> None:
     """Copy ``meta`` into a slot header (stamps included)."""
@@ -56,7 +59,7 @@ def read_meta(header: SlotHeader) -> FrameMeta:
         frame_id=int(header["frame_id"]),
         camera=camera,
         jitter=(float(jitter[0]), float(jitter[1])),
-        flags=FrameFlags(int(header["flags"]) & int(FrameFlags.RESET | FrameFlags.PREDICTED)),
+        flags=FrameFlags(int(header["flags"]) & int(KNOWN_FLAGS)),
         stamps=np.array(header["stamps"], dtype=np.int64),
         input_seq=int(header["input_seq"]),
     )

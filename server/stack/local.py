@@ -32,9 +32,20 @@ from upscalers.names import TEMPORAL_UPSCALERS, UPSCALERS
 log = logging.getLogger(__name__)
 
 
-# The game process's exit code when its X display died (server/game/x11/source.py;
-# not imported from there: that module needs the X11 libraries).
+# The game process's exit codes of source x11 besides the application's own: its X
+# display died (server/game/x11/source.py), the source could not start (bad command,
+# no Xvfb, no display: server/commands/game_x11.py). Not imported: those modules need
+# the X11 libraries.
 DISPLAY_GONE_CODE = 70
+SOURCE_FAILED_CODE = 78
+
+
+def _x11_end(code: int) -> str:
+    if code == DISPLAY_GONE_CODE:
+        return "the X display is gone; the session stops"
+    if code == SOURCE_FAILED_CODE:
+        return "the X11 source could not start (the game's log above says why)"
+    return f"the application exited (code {code}); the session stops"
 
 
 class SourceStopped(RuntimeError):
@@ -292,12 +303,7 @@ class LocalStack:
         if self.config.source == "x11":
             # The game process ends when the application does (or its display died):
             # the session has nothing left to stream, whatever the code.
-            raise SourceStopped(
-                f"the application exited (code {code}); the session stops"
-                if code != DISPLAY_GONE_CODE
-                else "the X display is gone; the session stops",
-                code,
-            )
+            raise SourceStopped(_x11_end(code), code)
         if code != 0:
             raise RuntimeError(f"game process exited with code {code}")
 
