@@ -16,6 +16,7 @@ from server.game.x11.capture import DisplayGone
 from server.game.x11.display import VirtualDisplay
 from server.game.x11.inject import InputInjector
 from server.game.x11.keys import NAMED_KEYS, keysym_of
+from server.session.viewer_input import PAGE_KEYS
 from tests.x11util import EventWindow
 
 W, H = 200, 100
@@ -74,7 +75,8 @@ def test_every_named_key_and_printable_character_has_a_keycode(
     rig: tuple[InputInjector, EventWindow],
 ) -> None:
     injector, _ = rig
-    names = [*NAMED_KEYS, *"abcdefghijklmnopqrstuvwxyz0123456789-=,./;'[]\\`"]
+    # Every name the page sends (server/session/viewer_input.py) presses a key.
+    names = [*NAMED_KEYS, *PAGE_KEYS, *"abcdefghijklmnopqrstuvwxyz0123456789-=,./;'[]\\`"]
     missing = [n for n in names if injector.keycode(n) is None]
     assert missing == []
     assert keysym_of("arrowleft") != keysym_of("arrowright")
