@@ -61,12 +61,33 @@ def test_the_application_gets_the_union_of_the_viewers_keys(tmp_path: Path) -> N
         receiver.close()
 
 
-def test_a_drag_is_relative_pointer_motion(tmp_path: Path) -> None:
+def test_pointer_lock_motion_is_relative_and_drags_come_absolute(tmp_path: Path) -> None:
     router, receiver, got = _router(tmp_path)
     try:
-        router.handle(A, b'{"type":"look","dx":12.5,"dy":-3,"seq":5}')
-        _wait(lambda: len(got) == 1)
+        # A plain drag's look deltas also arrive as absolute pointer messages: not twice.
+        router.handle(A, b'{"type":"look","dx":40,"dy":0,"seq":4}')
+        router.handle(A, b'{"type":"look","dx":12.5,"dy":-3,"locked":true,"seq":5}')
+        router.handle(A, b'{"type":"pointer","x":0.25,"y":1,"buttons":3,"seq":6}')
+        _wait(lambda: len(got) == 2)
+        time.sleep(0.05)
+        assert len(got) == 2
         assert (got[0].pointer_dx, got[0].pointer_dy, got[0].seq) == (12.5, -3.0, 5)
+        assert (got[1].pointer_x, got[1].pointer_y, got[1].buttons) == (0.25, 1.0, 3)
+    finally:
+        receiver.close()
+
+
+def test_a_gamepad_holds_keys_with_the_keyboard(tmp_path: Path) -> None:
+    router, receiver, got = _router(tmp_path)
+    try:
+        router.handle(A, b'{"type":"keys","down":["x"],"seq":1}')
+        # standard map: button 0 -> space, left stick right -> arrowright
+        router.handle(A, b'{"type":"gamepad","index":0,"buttons":[0],"axes":[0.9,0],"seq":2}')
+        _wait(lambda: len(got) == 2)
+        assert got[-1].keys_down == ["arrowright", "space", "x"]
+        router.handle(A, b'{"type":"gamepad","index":0,"buttons":[],"axes":[0,0],"seq":3}')
+        _wait(lambda: len(got) == 3)
+        assert got[-1].keys_down == ["x"]
     finally:
         receiver.close()
 
@@ -98,7 +119,8 @@ def test_controls_the_source_cannot_honour_are_refused(tmp_path: Path) -> None:
 
 
 def test_the_built_in_game_keeps_its_camera_keys(tmp_path: Path) -> None:
-    """Without color_only, keys still move the camera and no raw key list is sent."""
+    """Without color_only, keys (and a gamepad's d-pad) move the camera, no raw key list
+    is sent and pointer messages are not the camera's."""
     got: list[InputMessage] = []
     receiver = InputReceiver(
         tmp_path / "game.sock", lambda message, seq: got.append(message), convert=lambda m: m
@@ -110,5 +132,10 @@ def test_the_built_in_game_keeps_its_camera_keys(tmp_path: Path) -> None:
         router.handle(A, b'{"type":"keys","down":["w"],"seq":1}')
         _wait(lambda: len(got) == 1)
         assert got[0].forward > 0 and got[0].keys_down is None
+        router.handle(A, b'{"type":"pointer","x":0.5,"y":0.5,"buttons":1,"seq":2}')
+        router.handle(A, b'{"type":"keys","down":[],"seq":3}')
+        router.handle(A, b'{"type":"gamepad","index":1,"buttons":[15],"axes":[],"seq":4}')
+        _wait(lambda: len(got) == 2)
+        assert got[1].right > 0 and got[1].forward == 0  # d-pad right: arrowright
     finally:
         receiver.close()

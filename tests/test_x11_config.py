@@ -55,3 +55,24 @@ def test_game_command_refuses_x11_without_an_application() -> None:
     )
     assert done.returncode == 2
     assert "needs --app" in done.stderr
+
+
+def test_a_per_application_gamepad_map_from_the_command_line() -> None:
+    import argparse
+
+    from server.stack.args import add_session_arguments, session_config_from
+
+    parser = argparse.ArgumentParser()
+    add_session_arguments(parser)
+    good = parser.parse_args(
+        ["--source", "x11", "--app", "pingus", "--render-size", "640x360", "--fps", "30",
+         "--gamepad-map", "button:0=z, axis:0-=arrowleft"]
+    )  # fmt: skip
+    config = session_config_from(good)
+    assert config is not None and config.gamepad is not None
+    assert config.gamepad.spec() == {"button:0": "z", "axis:0-": "arrowleft"}
+    bad = parser.parse_args(
+        ["--source", "x11", "--app", "pingus", "--render-size", "640x360", "--fps", "30",
+         "--gamepad-map", "button:0=nosuchkey"]
+    )  # fmt: skip
+    assert session_config_from(bad) is None  # refused, the reason printed

@@ -13,7 +13,9 @@ export const INPUT_TRACK = "input";
 
 export type InputMessage =
 	| { type: "keys"; down: string[] }
-	| { type: "look"; dx: number; dy: number }
+	// locked: sent under pointer lock (unbounded relative motion); a captured application
+	// takes only those as relative moves, the absolute `pointer` carries drags.
+	| { type: "look"; dx: number; dy: number; locked?: boolean }
 	| ({ type: "pointer" } & PointerState)
 	| ({ type: "gamepad" } & GamepadState)
 	| { type: "control"; upscaler?: string; scale?: number; frame_generation?: boolean; cache_policy?: string }
@@ -202,7 +204,8 @@ export class InputCapture {
 	#flushLook = (): void => {
 		this.#flushScheduled = false;
 		if (this.#dx === 0 && this.#dy === 0) return;
-		this.#publisher.send({ type: "look", dx: this.#dx, dy: this.#dy });
+		const locked = document.pointerLockElement === this.#target;
+		this.#publisher.send({ type: "look", dx: this.#dx, dy: this.#dy, ...(locked ? { locked } : {}) });
 		this.#dx = 0;
 		this.#dy = 0;
 	};

@@ -12,6 +12,8 @@ export class Overlay {
 		this.#stats = stats;
 		this.visible = visible;
 		window.addEventListener("keydown", (event) => {
+			// A key the player took for the game (focus on the picture) is the game's.
+			if (event.defaultPrevented) return;
 			if (event.key === "o" || event.key === "F2") this.visible = !this.visible;
 		});
 	}

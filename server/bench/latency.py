@@ -145,6 +145,7 @@ class LiveStack:
             cert_hash_hex=self.endpoint.cert_sha256,
             frame_generation=self.config.frame_generation,
             source=self.config.source,
+            gamepad=self.config.gamepad,
         )
         self.session = StreamingSession(
             settings,

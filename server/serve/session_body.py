@@ -100,6 +100,7 @@ async def run_game_session(
             cert_hash_hex=plan.cert_hash_hex,
             upscaler=config.upscaler,
             source=config.source,
+            gamepad=config.gamepad,
             scale=config.scale,
             frame_generation=config.frame_generation,
             cache_policy=upscaler_registry.cache_policy_at_start(

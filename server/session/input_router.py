@@ -17,14 +17,17 @@ from collections.abc import Callable
 from pathlib import Path
 
 from server.game.input import InputMessage, send_input
+from server.session.gamepad_keys import GamepadKeyMap
 from server.session.session_control import ControlResult
 from server.session.viewer_input import (
     BadViewerMessage,
     ControlMessage,
+    GamepadMessage,
     HeldKeys,
     KeyframeMessage,
     KeysMessage,
     LookMessage,
+    PointerMessage,
     look_input,
     parse_viewer_message,
 )
@@ -50,14 +53,17 @@ class InputRouter:
         on_cache_policy: Callable[[str | None], None] | None = None,
         on_control_result: Callable[[ControlResult], None] | None = None,
         color_only: bool = False,
+        gamepad_keys: GamepadKeyMap | None = None,
     ) -> None:
         """``color_only``: the game is a captured application (source x11): it takes the
         viewers' raw keys, pointer and buttons, and no method that needs depth or motion,
         no scale change and no frame generation applies to it."""
         self.game_input = game_input
         self.color_only = color_only
-        # Raw keys each viewer holds (keyboard and gamepad), for a colour-only source.
-        self.raw_keys: dict[str, frozenset[str]] = {}
+        # The keys each viewer holds, per device ("keyboard", "gamepad0"...).
+        self.raw_keys: dict[str, dict[str, frozenset[str]]] = {}
+        # Gamepad buttons and sticks -> keys (a per-application map from config).
+        self.gamepad_keys = gamepad_keys or GamepadKeyMap.standard()
         self.worker_control = worker_control
         self.request_keyframe = request_keyframe
         self.on_upscaler_set = on_upscaler_set
@@ -86,20 +92,27 @@ class InputRouter:
             return
         self.accepted += 1
         if isinstance(message, LookMessage):
-            self._to_game(look_input(message))
-        elif isinstance(message, KeysMessage) and self.color_only:
-            self._raw_keys(source, frozenset(k.lower() for k in message.down), message.seq)
+            if not self.color_only:
+                self._to_game(look_input(message))
+            elif message.locked:  # otherwise the same drag comes as `pointer` messages
+                self._to_game(
+                    InputMessage(pointer_dx=message.dx, pointer_dy=message.dy, seq=message.seq)
+                )
+        elif isinstance(message, PointerMessage):
+            if self.color_only:
+                self._to_game(
+                    InputMessage(
+                        pointer_x=message.x,
+                        pointer_y=message.y,
+                        buttons=message.buttons,
+                        seq=message.seq,
+                    )
+                )
         elif isinstance(message, KeysMessage):
-            held = self.held.get(source)
-            if held is None:
-                if len(self.held) >= MAX_HELD:
-                    return
-                held = self.held[source] = HeldKeys()
-            held.update(message)
-            # Move at once, so the press shows in the very next frame (input-to-photon).
-            step = held.step(1 / 60)
-            if step is not None:
-                self._to_game(step)
+            self._keys(source, "keyboard", frozenset(k.lower() for k in message.down), message.seq)
+        elif isinstance(message, GamepadMessage):
+            pad = f"gamepad{message.index}"
+            self._keys(source, pad, self.gamepad_keys.keys_for(message), message.seq)
         elif isinstance(message, ControlMessage):
             self._control(source, message)
         elif isinstance(message, KeyframeMessage):
@@ -108,18 +121,37 @@ class InputRouter:
     def forget(self, source: str) -> None:
         """The viewer left: its held keys are released."""
         self.held.pop(source, None)
-        if self.raw_keys.pop(source, None):
+        if any(self.raw_keys.pop(source, {}).values()) and self.color_only:
             self._to_game(InputMessage(keys_down=self._all_raw_keys()))
 
-    def _raw_keys(self, source: str, keys: frozenset[str], seq: int) -> None:
-        """A viewer's held keys changed: the application gets the union of every viewer's."""
-        if source not in self.raw_keys and len(self.raw_keys) >= MAX_HELD:
+    def _keys(self, source: str, device: str, keys: frozenset[str], seq: int) -> None:
+        """The keys one device of a viewer holds changed (keyboard, or a gamepad mapped
+        to keys): a captured application gets the union of every viewer's and device's
+        keys; the built-in game moves the camera by the viewer's union."""
+        devices = self.raw_keys.get(source)
+        if devices is None:
+            if len(self.raw_keys) >= MAX_HELD:
+                return
+            devices = self.raw_keys[source] = {}
+        devices[device] = keys
+        if self.color_only:
+            self._to_game(InputMessage(keys_down=self._all_raw_keys(), seq=seq))
             return
-        self.raw_keys[source] = keys
-        self._to_game(InputMessage(keys_down=self._all_raw_keys(), seq=seq))
+        held = self.held.get(source)
+        if held is None:
+            held = self.held[source] = HeldKeys()
+        viewer_keys = sorted(set().union(*devices.values()))[:MAX_GAME_KEYS]
+        held.update(KeysMessage(type="keys", down=viewer_keys, seq=seq))
+        # Move at once, so the press shows in the very next frame (input-to-photon).
+        step = held.step(1 / 60)
+        if step is not None:
+            self._to_game(step)
 
     def _all_raw_keys(self) -> list[str]:
-        union = set().union(*self.raw_keys.values()) if self.raw_keys else set()
+        union: set[str] = set()
+        for devices in self.raw_keys.values():
+            for keys in devices.values():
+                union |= keys
         return sorted(union)[:MAX_GAME_KEYS]
 
     def tick(self) -> None:

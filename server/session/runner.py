@@ -30,6 +30,7 @@ from server.quic.client import WtConnectError
 from server.quic.moq_link import MoqLink, connect_moq
 from server.session.broadcast import GameBroadcast
 from server.session.capture import CapturedFrame, CaptureThread
+from server.session.gamepad_keys import GamepadKeyMap
 from server.session.input_router import InputRouter
 
 log = logging.getLogger(__name__)
@@ -54,6 +55,7 @@ class StreamSettings:
     token: str | None = None  # JWT for the relay (sent as ?jwt=); None: an open relay
     # "game": the built-in renderer; "x11": a captured application (colour only; raw input)
     source: str = "game"
+    gamepad: GamepadKeyMap | None = None  # gamepad -> keys (None: the standard default)
 
 
 class StreamingSession:
@@ -92,6 +94,7 @@ class StreamingSession:
             on_frame_generation=self._frame_generation_set,
             on_cache_policy=self._cache_policy_set,
             color_only=settings.source != "game",
+            gamepad_keys=settings.gamepad,
         )
         self._on_upscaler_set = on_upscaler_set
         self._on_scale_request = on_scale_request

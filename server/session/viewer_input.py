@@ -65,6 +65,9 @@ class LookMessage(_Base):
     type: Literal["look"]
     dx: float = Field(ge=-10_000, le=10_000, allow_inf_nan=False)
     dy: float = Field(ge=-10_000, le=10_000, allow_inf_nan=False)
+    # Sent under pointer lock; without it the drag also arrives as absolute `pointer`
+    # messages, which a captured application takes instead.
+    locked: bool = False
 
 
 class KeysMessage(_Base):
@@ -138,9 +141,6 @@ def look_input(message: LookMessage) -> InputMessage:
     return InputMessage(
         dyaw_deg=clamp(-message.dx * LOOK_DEG_PER_PX),
         dpitch_deg=clamp(-message.dy * LOOK_DEG_PER_PX),
-        # The same drag as relative pointer motion, for a captured application.
-        pointer_dx=message.dx,
-        pointer_dy=message.dy,
         seq=message.seq,
     )
 

@@ -68,6 +68,13 @@ def add_session_arguments(parser: argparse.ArgumentParser) -> None:
         help="x11: when the application exits, stop the session (default) or restart it",
     )
     x11.add_argument(
+        "--gamepad-map",
+        default=None,
+        help='gamepad -> keys for the application, e.g. "button:0=z,button:1=x,axis:0-=arrowleft" '
+        "(default: d-pad and left stick = arrows, A space, B control, X shift, Y alt, "
+        "start enter, back escape)",
+    )
+    x11.add_argument(
         "--x11-display",
         default=None,
         help="x11: capture this running X server (e.g. :0) instead of starting Xvfb",
@@ -106,7 +113,20 @@ def session_config_from(args: argparse.Namespace, sessions: int = 1) -> SessionC
         app=args.app,
         app_exit=args.app_exit,
         x11_display=args.x11_display,
+        gamepad=_gamepad_spec(args.gamepad_map),
     )
+
+
+def _gamepad_spec(text: str | None) -> dict[str, str] | None:
+    """``button:0=z,axis:0-=arrowleft`` -> the config's dict (checked by the model)."""
+    if text is None:
+        return None
+    spec: dict[str, str] = {}
+    for item in text.split(","):
+        entry, sep, key = item.strip().partition("=")
+        # A malformed item goes through as is: the model's check names it.
+        spec[entry.strip()] = key.strip() if sep else ""
+    return spec
 
 
 def _fitted(display_size: str, sessions: int) -> FittedDefaults | None:

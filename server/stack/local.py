@@ -26,6 +26,7 @@ from server.config_types import CachePolicyName, PredictorName, SizeText, Upscal
 from server.frames.frame import Size
 from server.frames.ring import SHM_DIR, FrameRing
 from server.frames.ring_frames import create_display_ring, create_render_ring
+from server.session.gamepad_keys import GamepadKeyMap
 from upscalers import registry
 from upscalers.names import TEMPORAL_UPSCALERS, UPSCALERS
 
@@ -103,6 +104,12 @@ class SessionConfig(BaseModel):
     )
     x11_display: str | None = Field(
         default=None, description="x11: capture this existing X server (:N) instead of a new Xvfb"
+    )
+    gamepad: GamepadKeyMap | None = Field(
+        default=None,
+        description='gamepad buttons and sticks -> keys, e.g. {"button:0": "z", '
+        '"axis:0-": "arrowleft"} (None: the standard layout\'s default: d-pad and left '
+        "stick = arrows, A space, B control, X shift, Y alt, start enter, back escape)",
     )
     game_threads: int = Field(default=1, ge=1, description="torch threads in the game")
     worker_threads: int = Field(
