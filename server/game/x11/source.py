@@ -19,7 +19,7 @@ import logging
 import shlex
 import time
 from collections.abc import Sequence
-from typing import Literal
+from typing import Generic, Literal, TypeVar
 
 from server.frames.frame import Camera, FrameFlags, FrameMeta, RenderFrame, Size
 from server.game.input import InputMessage
@@ -34,9 +34,14 @@ from server.game.x11.inject import InputInjector
 log = logging.getLogger(__name__)
 
 AppExitPolicy = Literal["stop", "restart"]
+T = TypeVar("T")
 MAX_RESTARTS = 3
 DISPLAY_GONE_CODE = 70  # the game process's exit code when its display died (stack/local.py)
 RESTART_WINDOW_S = 30.0
+# A key or button tapped for less than this stays down this long: programs read their
+# input state once per frame of their own, and a loaded game at 15-20 fps misses a
+# press shorter than its frame (SuperTux on 2 cores did; a person's tap is ~100 ms).
+MIN_TAP_S = 0.08
 
 
 class ApplicationEnded(SourceEnded):
@@ -44,6 +49,42 @@ class ApplicationEnded(SourceEnded):
 
     def __init__(self, code: int) -> None:
         super().__init__(f"the application exited with code {code}", code)
+
+
+class HeldUntilSeen(Generic[T]):
+    """What is held down: what the viewers want, plus what was pressed less than
+    ``min_hold_s`` ago and already released again (a tap)."""
+
+    def __init__(self, min_hold_s: float = MIN_TAP_S) -> None:
+        self.min_hold_s = min_hold_s
+        self.wanted: frozenset[T] = frozenset()
+        self.down: frozenset[T] = frozenset()
+        self._pressed_at: dict[T, float] = {}
+
+    def want(self, wanted: frozenset[T], now: float | None = None) -> None:
+        now = time.monotonic() if now is None else now
+        for item in wanted - self.down:
+            self._pressed_at[item] = now
+        self.wanted = wanted
+        self._forget_old(now)
+        self.down = wanted | frozenset(self._pressed_at)
+
+    def next_tick(self, now: float | None = None) -> bool:
+        """Release the taps held long enough; True if that changed what is down."""
+        self._forget_old(time.monotonic() if now is None else now)
+        down = self.wanted | frozenset(self._pressed_at)
+        changed = down != self.down
+        self.down = down
+        return changed
+
+    def _forget_old(self, now: float) -> None:
+        for item, at in list(self._pressed_at.items()):
+            if now - at >= self.min_hold_s:
+                del self._pressed_at[item]
+
+
+def _bits(mask: int) -> frozenset[int]:
+    return frozenset(1 << i for i in range(mask.bit_length()) if mask >> i & 1)
 
 
 class X11Source:
@@ -73,6 +114,10 @@ class X11Source:
         self.exit_code: int | None = None
         self._restarts: list[float] = []
         self._first = True
+        self._keys: HeldUntilSeen[str] = HeldUntilSeen()
+        self._buttons: HeldUntilSeen[int] = HeldUntilSeen()
+        self._pointer_at: tuple[float, float] | None = None
+        self._buttons_waiting: list[int] = []  # see apply_input
         try:
             self._capture = ScreenCapture(display, size.width, size.height)
             self._injector = InputInjector(display, size.width, size.height)
@@ -147,6 +192,7 @@ class X11Source:
         self, frame_index: int, t: float, targets: RenderTargets | None = None
     ) -> RenderFrame:
         self._check_app()
+        self._release_taps()
         if targets is None:
             targets = RenderTargets.allocate(self.render_size)
         try:
@@ -174,15 +220,46 @@ class X11Source:
         return self.render(frame_index, t, targets)
 
     def apply_input(self, event: InputMessage) -> None:
-        """Keys, pointer and buttons of one viewer message, in that order."""
+        """Keys, pointer and buttons of one viewer message, in that order.
+
+        A key or button released less than MIN_TAP_S after its press (a quick tap;
+        both messages may be drained at the start of one tick) stays down until a
+        tick after MIN_TAP_S: programs that poll their input state once per frame of
+        their own would never see a press that lasted microseconds."""
         if event.keys_down is not None:
-            self._injector.set_keys_down(event.keys_down)
+            self._keys.want(frozenset(event.keys_down))
+            self._injector.set_keys_down(self._keys.down)
+        jumped = False
         if event.pointer_x is not None and event.pointer_y is not None:
-            self._injector.move_pointer_to(event.pointer_x, event.pointer_y)
+            position = (event.pointer_x, event.pointer_y)
+            jumped = position != self._pointer_at
+            self._pointer_at = position
+            self._injector.move_pointer_to(*position)
         if event.pointer_dx or event.pointer_dy:
             self._injector.move_pointer_by(event.pointer_dx, event.pointer_dy)
         if event.buttons is not None:
-            self._injector.set_buttons(event.buttons)
+            if jumped or self._buttons_waiting:
+                # A press that comes with a jump of the pointer (a touch, a click with
+                # no move before it) lands a tick after the move, as on a real mouse:
+                # menus (Neverball's) act on what the pointer was over when pressed.
+                self._buttons_waiting.append(event.buttons)
+            else:
+                self._set_buttons(event.buttons)
+
+    def _set_buttons(self, mask: int) -> None:
+        self._buttons.want(_bits(mask))
+        self._injector.set_buttons(sum(self._buttons.down))
+
+    def _release_taps(self) -> None:
+        """A new tick: a press waiting for its move goes out, taps held long enough are
+        released."""
+        waiting, self._buttons_waiting = self._buttons_waiting, []
+        for mask in waiting:  # a press and its release, in order (the tap hold applies)
+            self._set_buttons(mask)
+        if self._keys.next_tick():
+            self._injector.set_keys_down(self._keys.down)
+        if self._buttons.next_tick():
+            self._injector.set_buttons(sum(self._buttons.down))
 
     def set_render_size(self, render_size: Size, scale: float) -> None:
         # The captured screen has the size the application draws at; a scale change
