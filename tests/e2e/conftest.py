@@ -9,32 +9,25 @@ shows with what the server sent.
 
 from __future__ import annotations
 
-import base64
 import contextlib
-import io
-import threading
-import time
-from collections import OrderedDict
 from collections.abc import Iterator
 from typing import Any
 
-import numpy as np
-import numpy.typing as npt
 import pytest
 
 from server.bench.latency import LiveStack
+from server.bench.snapshots import FrameThumbs, Thumb, decode_data_url, psnr, thumbnail
 from server.ops.browser_paths import WEB_ROOT
 from server.stack.local import SessionConfig
 from tests.chromium import browser_marks
 
+# Re-exported for the tests (thumbnails and PSNR live in server/bench/snapshots.py).
+__all__ = ["FrameTap", "Live", "Thumb", "decode_data_url", "psnr", "thumbnail"]
+
 RENDER = "320x180"
 DISPLAY = "640x360"
 FPS = 30.0
-THUMB = 4  # box-downscale factor of the thumbnails
-KEEP_FRAMES = 300
 PRESENTED_AT_LEAST = "n => window.upcast && window.upcast.stats().framesPresented >= n"
-
-Thumb = npt.NDArray[np.float32]
 
 
 def needs(page: str) -> list[pytest.MarkDecorator]:
@@ -42,56 +35,7 @@ def needs(page: str) -> list[pytest.MarkDecorator]:
     return browser_marks(WEB_ROOT / page)
 
 
-def thumbnail(rgb: npt.NDArray[Any]) -> Thumb:
-    """(H, W, 3) -> (H/4, W/4, 3) float32 box average (what the tap and the test compare)."""
-    h, w = rgb.shape[0] // THUMB * THUMB, rgb.shape[1] // THUMB * THUMB
-    a = np.asarray(rgb[:h, :w, :3], dtype=np.float32)
-    thumb: Thumb = a.reshape(h // THUMB, THUMB, w // THUMB, THUMB, 3).mean(axis=(1, 3))
-    return thumb
-
-
-def psnr(a: Thumb, b: Thumb) -> float:
-    mse = float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2))
-    return 99.0 if mse == 0 else 10.0 * float(np.log10(255.0**2 / mse))
-
-
-def decode_data_url(url: str) -> npt.NDArray[np.uint8]:
-    from PIL import Image
-
-    header, _, data = url.partition(",")
-    assert header.startswith("data:image/"), header[:40]
-    with Image.open(io.BytesIO(base64.b64decode(data))) as im:
-        return np.asarray(im.convert("RGB"), dtype=np.uint8)
-
-
-class FrameTap:
-    """Thumbnails of the last frames the server encoded, by frame id, with arrival times."""
-
-    def __init__(self, keep: int = KEEP_FRAMES) -> None:
-        self._keep = keep
-        self._lock = threading.Lock()
-        self.thumbs: OrderedDict[int, Thumb] = OrderedDict()
-        self.times: list[float] = []
-
-    def __call__(self, frame_id: int, color: npt.NDArray[np.uint8]) -> None:
-        thumb = thumbnail(color)
-        with self._lock:
-            self.thumbs[frame_id] = thumb
-            while len(self.thumbs) > self._keep:
-                self.thumbs.popitem(last=False)
-            self.times.append(time.monotonic())
-
-    def get(self, frame_id: int) -> Thumb | None:
-        with self._lock:
-            return self.thumbs.get(frame_id)
-
-    def items(self) -> list[tuple[int, Thumb]]:
-        with self._lock:
-            return list(self.thumbs.items())
-
-    def frames_between(self, t0: float, t1: float) -> int:
-        with self._lock:
-            return sum(1 for t in self.times if t0 <= t < t1)
+FrameTap = FrameThumbs  # the name the tests use
 
 
 class Live:

@@ -13,8 +13,6 @@ while the right arrow is held; Neverball's menu (a mouse menu) opens the item cl
 
 from __future__ import annotations
 
-import shlex
-import shutil
 import statistics
 import time
 from collections.abc import Iterator
@@ -24,17 +22,16 @@ from typing import Any
 import numpy as np
 import pytest
 
+from server.bench.app_presets import PRESETS, PresetError
 from server.bench.latency import LiveStack
+from server.bench.snapshots import snapshot_psnr
 from server.stack.local import SessionConfig
 from tests.e2e.conftest import (
     FrameTap,
     Live,
-    decode_data_url,
     needs,
     open_player,
-    psnr,
     stats,
-    thumbnail,
 )
 
 pytestmark = needs("index.html")
@@ -46,36 +43,21 @@ SAME_FRAME_DB = 35.0
 # At that default (0.75 Mbit/s) Neverball's menu, with its star field, measured
 # 34.2 dB; screen content (text, sprites) wants more bits than the built-in scenes.
 BITRATE = 1_500_000
-SUPERTUX = "/usr/games/supertux2"
-SUPERTUX_LEVEL = "/usr/share/games/supertux2/levels/world1/welcome_antarctica.stl"
-NEVERBALL = "/usr/games/neverball"
-
-
-def _require(program: str) -> None:
-    if shutil.which(program) is None:
-        pytest.fail(
-            f"{program} is missing: .ci/run installs it (apt-get install supertux neverball)"
-        )
 
 
 def supertux_command(home: Path) -> str:
-    _require(SUPERTUX)
-    return shlex.join(
-        ["env", f"HOME={home}", SUPERTUX, "--window", "--geometry", SIZE, "--renderer", "sdl",
-         "--disable-sound", "--disable-music", SUPERTUX_LEVEL]
-    )  # fmt: skip
+    return _command("supertux", home)
 
 
 def neverball_command(home: Path) -> str:
-    _require(NEVERBALL)
-    config = home / ".neverball"
-    config.mkdir(parents=True, exist_ok=True)
-    w, h = SIZE.split("x")
-    # Neverball takes its resolution from its config file only.
-    (config / "neverballrc").write_text(
-        f"fullscreen 0\nwidth {w}\nheight {h}\nsound_volume 0\nmusic_volume 0\n"
-    )
-    return shlex.join(["env", f"HOME={home}", NEVERBALL])
+    return _command("neverball", home)
+
+
+def _command(preset: str, home: Path) -> str:
+    try:
+        return PRESETS[preset].command(SIZE, home)
+    except PresetError as exc:
+        pytest.fail(f"{exc} (.ci/run installs it)")
 
 
 def start_app(app: str) -> Iterator[Live]:
@@ -105,17 +87,7 @@ def wait_for(predicate: Any, timeout_s: float, what: str) -> float:
 
 def same_frame_db(live: Live, page: Any, count: int = 6) -> list[float]:
     """Canvas snapshots against the server's frame with the same id."""
-    out: list[float] = []
-    for _ in range(count * 10):
-        snap = page.evaluate("() => window.upcast.snapshot()")
-        sent = live.tap.get(snap["frameId"]) if snap["frameId"] is not None else None
-        if sent is not None:
-            out.append(psnr(thumbnail(decode_data_url(snap["dataUrl"])), sent))
-            if len(out) == count:
-                break
-        page.wait_for_timeout(150)
-    assert len(out) == count, f"only {len(out)} snapshots with a known frame"
-    return out
+    return snapshot_psnr(page, live.tap, count)
 
 
 # -- SuperTux -------------------------------------------------------------------------
