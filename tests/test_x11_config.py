@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 from pydantic import ValidationError
@@ -76,3 +77,26 @@ def test_a_per_application_gamepad_map_from_the_command_line() -> None:
          "--gamepad-map", "button:0=nosuchkey"]
     )  # fmt: skip
     assert session_config_from(bad) is None  # refused, the reason printed
+
+
+def test_serve_sessions_can_stream_applications(tmp_path: Path) -> None:
+    """upcast serve --config: one session the built-in game, one an application with
+    its own gamepad map, one refused (a temporal upscaler on a captured application)."""
+    from server.serve.config import ConfigFileError, load_overrides, session_configs
+    from server.stream_config import StreamConfig
+
+    path = tmp_path / "sessions.toml"
+    path.write_text(
+        "[[sessions]]\n\n"
+        '[[sessions]]\nsource = "x11"\napp = "/usr/games/supertux2 --geometry 640x360"\n'
+        'app_exit = "restart"\ngamepad = { "button:0" = "space" }\n'
+    )
+    configs = session_configs(
+        SessionConfig(render_size="640x360"), StreamConfig(), load_overrides(path), 2, "game"
+    )
+    game, app = configs[0][0], configs[1][0]
+    assert game.source == "game" and app.source == "x11" and app.app_exit == "restart"
+    assert app.gamepad is not None and app.gamepad.spec() == {"button:0": "space"}
+    path.write_text('[[sessions]]\nsource = "x11"\napp = "pingus"\nupscaler = "temporal"\n')
+    with pytest.raises(ConfigFileError, match=r"(?s)session 1:.*needs depth, motion and jitter"):
+        session_configs(SessionConfig(), StreamConfig(), load_overrides(path), 1, "game")

@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 import tomllib
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
@@ -43,6 +43,19 @@ class SessionOverride(BaseModel):
         default=None, description="layer-cache policy of unet_cached"
     )
     seed: int | None = Field(default=None, description="scene seed")
+    source: Literal["game", "x11"] | None = Field(
+        default=None, description="game (built-in renderer) or x11 (a real application)"
+    )
+    app: str | None = Field(default=None, description="x11: the application's command line")
+    app_exit: Literal["stop", "restart"] | None = Field(
+        default=None, description="x11: stop the session or restart the application when it exits"
+    )
+    x11_display: str | None = Field(
+        default=None, description="x11: capture this X server (:N) instead of a new Xvfb"
+    )
+    gamepad: dict[str, str] | None = Field(
+        default=None, description="gamepad -> keys map, e.g. {\"button:0\": \"z\"}"
+    )
     bitrate_kbps: int | None = Field(default=None, description="video bitrate")
     gop_seconds: float | None = Field(default=None, description="keyframe interval (seconds)")
 
