@@ -52,6 +52,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--display-size", default="1280x720")
     parser.add_argument("--upscaler", default="easu_rcas")
     parser.add_argument(
+        "--bitrate-kbps", type=int, default=None, help="video bitrate (default: as upcast up)"
+    )
+    parser.add_argument(
         "--screenshots", type=Path, default=None, help="folder for a PNG of the player per program"
     )
 
@@ -73,7 +76,8 @@ def _measure(args: argparse.Namespace, name: str, browser: Any, home: Path) -> d
         upscaler=args.upscaler,
     )
     thumbs = FrameThumbs()
-    with LiveStack(config, frame_tap=thumbs) as live:
+    bitrate = None if args.bitrate_kbps is None else args.bitrate_kbps * 1000
+    with LiveStack(config, frame_tap=thumbs, bitrate=bitrate) as live:
         page = browser.new_page(viewport={"width": 1000, "height": 720})
         try:
             page.goto(live.player_url(overlay="1"))
@@ -166,6 +170,7 @@ def run(args: argparse.Namespace) -> int:
             "display_size": args.display_size,
             "fps": args.fps,
             "upscaler": args.upscaler,
+            "bitrate_kbps": args.bitrate_kbps,
             "seconds": args.seconds,
             "tap_every_s": TAP_EVERY_S,
             "transport": "loopback, relay process, headless Chromium (WebTransport)",
