@@ -16,7 +16,8 @@ import time
 import numpy as np
 
 from server.game.x11.errors import DisplayError, DisplayGone
-from server.game.x11.grabbers import DEFAULT_GRABBER, GRABBERS, Frame, Grabber
+from server.game.x11.grab_base import Frame, Grabber
+from server.game.x11.grabbers import DEFAULT_GRABBER, GRABBERS
 
 __all__ = ["DisplayError", "DisplayGone", "ScreenCapture"]
 

@@ -13,7 +13,7 @@ import av.container
 import av.video.frame
 from Xlib import display as xdisplay
 
-from server.game.x11.grabbers import Frame
+from server.game.x11.grab_base import Frame
 
 
 class X11GrabGrabber:

@@ -6,7 +6,7 @@ import numpy as np
 from Xlib import X
 from Xlib import display as xdisplay
 
-from server.game.x11.grabbers import Frame, bgrx_to_rgb
+from server.game.x11.grab_base import Frame, bgrx_to_rgb
 
 
 class XlibGrabber:

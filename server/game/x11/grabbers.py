@@ -13,39 +13,15 @@ python-xlib's XGetImage (pure Python socket reads).
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Protocol
 
-import cv2
 import mss
 import numpy as np
-import numpy.typing as npt
 
 from server.game.x11.errors import DisplayError
+from server.game.x11.grab_base import Frame, Grabber, bgrx_to_rgb
 
-Frame = npt.NDArray[np.uint8]
 # The shared libraries mss opens at run time (no wheel ships them).
 XCB_PACKAGES = "libxcb1 libxcb-randr0 libxcb-render0 libxcb-shm0 libxcb-xfixes0"
-
-
-class Grabber(Protocol):
-    def screen_size(self) -> tuple[int, int]:
-        """(width, height) of the screen when this grabber connected."""
-        ...
-
-    def grab_into(self, out: Frame) -> None:
-        """Write the top-left ``out.shape[:2]`` pixels (within the screen) as RGB into ``out``."""
-        ...
-
-    def close(self) -> None: ...
-
-
-def bgrx_to_rgb(src: Frame, out: Frame) -> None:
-    """The X server's 32-bit little-endian pixels (B, G, R, pad) into RGB ``out``."""
-    if out.flags.c_contiguous:
-        # One pass, in place: OpenCV is about 4x numpy's strided assignment here.
-        cv2.cvtColor(src, cv2.COLOR_BGRA2RGB, dst=out)
-    else:
-        out[...] = src[..., 2::-1]
 
 
 class MssGrabber:
