@@ -8,7 +8,9 @@ for a window).
 from __future__ import annotations
 
 import os
+import subprocess
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -103,3 +105,30 @@ def test_two_sessions_stream_two_displays_side_by_side() -> None:
         _frames(b, 3)  # b streams on
     leftover = [p for p in os.listdir(SHM_DIR) if p.startswith(a.config.name)]
     assert leftover == []
+
+
+def test_serve_leaves_a_session_whose_application_ended_and_restarts_a_crashed_one(
+    tmp_path: Path,
+) -> None:
+    """upcast serve's supervisor: exit code SOURCE_ENDED_CODE (the application exited,
+    app_exit stop) is final; any other exit is a crash and is restarted."""
+    from server.serve.session_process import SOURCE_ENDED_CODE
+    from server.serve.supervisor import ServedSession, Supervisor
+    from server.stream_config import StreamConfig
+
+    def served(index: int, code: int) -> ServedSession:
+        s = ServedSession(
+            index, SessionConfig(), StreamConfig(broadcast=f"b{index}"), 0, tmp_path / f"{index}"
+        )
+        s.proc = subprocess.Popen(["sh", "-c", f"exit {code}"], start_new_session=True)
+        s.proc.wait()
+        return s
+
+    ended, crashed = served(1, SOURCE_ENDED_CODE), served(2, 1)
+    supervisor = Supervisor([ended, crashed], relay_url="http://127.0.0.1:9/")
+    try:
+        supervisor.check()
+        assert supervisor.state_of(ended, {}) == "ended" and ended.next_start_at is None
+        assert supervisor.state_of(crashed, {}) == "restarting" and crashed.restarts == 1
+    finally:
+        supervisor.stop_all()

@@ -21,8 +21,14 @@ from typing import Any
 from server.ops.logging_setup import install_redaction
 from server.serve.session_body import LiveSession, SessionPlan, run_game_session
 from server.serve.spec import SessionSpec
+from server.stack.local import SourceStopped
 
 log = logging.getLogger(__name__)
+
+
+# The process's exit code when its source ended for good (an X11 application exited
+# and app_exit is "stop"): the supervisor leaves it ended instead of restarting it.
+SOURCE_ENDED_CODE = 3
 
 
 def write_status(path: Path, state: str, live: LiveSession | None = None) -> None:
@@ -78,6 +84,10 @@ async def _run(spec: SessionSpec) -> int:
             on_up=up,
             on_tick=lambda live: write_status(spec.status_path, "up", live),
         )
+    except SourceStopped as exc:
+        log.warning("session %s: %s", spec.stream.broadcast, exc)
+        write_status(spec.status_path, "ended")
+        return SOURCE_ENDED_CODE
     except (RuntimeError, TimeoutError) as exc:
         log.error("session %s failed: %s", spec.stream.broadcast, exc)
         write_status(spec.status_path, "failed")

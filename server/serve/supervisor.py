@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from server.serve.session_process import SOURCE_ENDED_CODE
 from server.serve.spec import SessionSpec
 from server.serve.tokens import TokenMinter, no_token
 from server.stack.local import SessionConfig, session_files
@@ -51,6 +52,7 @@ class ServedSession:
     next_start_at: float | None = None  # set while waiting out a backoff
     backoff_s: float = BACKOFF_MIN_S
     last_exit: int | None = None
+    ended: bool = False  # its application exited for good (source x11, app_exit stop)
     extra: dict[str, Any] = field(default_factory=dict)
 
     @property
@@ -121,6 +123,16 @@ class Supervisor:
                 s.last_exit = s.proc.returncode
                 self._reap(s)
                 s.proc = None
+                if s.last_exit == SOURCE_ENDED_CODE:
+                    # Its application exited and the session's policy is to stop
+                    # (app_exit "stop"; "restart" restarts it inside the session).
+                    s.ended = True
+                    log.info(
+                        "session %d (%s): its application exited; not restarted (app_exit stop)",
+                        s.index,
+                        s.broadcast,
+                    )
+                    continue
                 if now - s.started_at >= STABLE_AFTER_S:
                     s.backoff_s = BACKOFF_MIN_S
                 s.restarts += 1
@@ -177,6 +189,8 @@ class Supervisor:
 
     def state_of(self, s: ServedSession, status: dict[str, Any]) -> str:
         if s.proc is None:
+            if s.ended:
+                return "ended"
             return "restarting" if s.next_start_at is not None else "stopped"
         state = str(status.get("state", "starting"))
         if state == "up" and time.time() - float(status.get("updated", 0)) > STATUS_STALE_S:
