@@ -54,7 +54,7 @@ class SessionOverride(BaseModel):
         default=None, description="x11: capture this X server (:N) instead of a new Xvfb"
     )
     gamepad: dict[str, str] | None = Field(
-        default=None, description="gamepad -> keys map, e.g. {\"button:0\": \"z\"}"
+        default=None, description='gamepad -> keys map, e.g. {"button:0": "z"}'
     )
     bitrate_kbps: int | None = Field(default=None, description="video bitrate")
     gop_seconds: float | None = Field(default=None, description="keyframe interval (seconds)")
