@@ -24,6 +24,7 @@ class StreamConfig(BaseModel):
         description="video bitrate (default: 6 Mbit/s at 720p60, scaled)",
     )
     gop_seconds: float = Field(default=2.0, gt=0, le=60, description="periodic keyframe interval")
+    audio: bool = Field(default=True, description="publish the game's sound (Opus track `audio`)")
     metrics_port: int | None = Field(
         default=None,
         ge=0,

@@ -3,6 +3,7 @@
 // broadcast ends (tracks closed by the relay, connection lost, or stop()).
 import { merge } from "@moq/json";
 import * as Moq from "@moq/lite";
+import type { AudioRendition } from "./audio";
 import type { VideoRendition } from "./decoder";
 import type { TimingRecord } from "./timing";
 
@@ -13,13 +14,18 @@ export const TIMING_TRACK = "timing";
 
 // moq-lite priority: higher is sent first when the link is congested. The catalog
 // gates everything, timing is tiny, video is the bulk.
-const PRIORITY = { catalog: 3, timing: 2, video: 1 };
+// Audio above video: it is tiny and a gap in sound is worse than a late frame.
+const PRIORITY = { catalog: 4, timing: 2, audio: 3, video: 1 };
 
 export interface MediaEvents {
 	catalog(rendition: VideoRendition, catalog: unknown): void;
 	/** One moof+mdat; `gap` is true when groups were skipped before this group. */
 	video(fragment: Uint8Array, gap: boolean): void;
 	timing(record: TimingRecord): void;
+	/** The catalog's Opus rendition (legacy container), when the broadcast has sound. */
+	audioCatalog?(rendition: AudioRendition): void;
+	/** One audio frame: varint pts (us) + Opus packet. */
+	audio?(payload: Uint8Array): void;
 	/** Counting only: groups never received, or abandoned unfinished for a newer one. */
 	groupSkipped(count: number): void;
 }
@@ -29,6 +35,8 @@ export class MediaSubscription {
 	readonly #events: MediaEvents;
 	#video?: Moq.Track;
 	#videoName?: string;
+	#audio?: Moq.Track;
+	#audioName?: string;
 	#stopped = false;
 	/** Resolves with why the subscription ended. */
 	readonly done: Promise<string>;
@@ -46,6 +54,7 @@ export class MediaSubscription {
 		if (this.#stopped) return;
 		this.#stopped = true;
 		this.#video?.close();
+		this.#audio?.close();
 		this.#broadcast.close();
 	}
 
@@ -79,6 +88,28 @@ export class MediaSubscription {
 			this.#videoName = rendition.track;
 			this.#video = this.#broadcast.subscribe(rendition.track, PRIORITY.video);
 			void this.#runVideo(this.#video);
+		}
+		const audio = pickAudio(catalog);
+		if (audio && this.#events.audio && audio.track !== this.#audioName) {
+			this.#events.audioCatalog?.(audio);
+			this.#audio?.close();
+			this.#audioName = audio.track;
+			this.#audio = this.#broadcast.subscribe(audio.track, PRIORITY.audio);
+			void this.#runAudio(this.#audio);
+		}
+	}
+
+	// Every audio frame in order: readFrame() drains older groups before newer ones.
+	// Audio never ends the epoch: video without sound is still worth showing.
+	async #runAudio(track: Moq.Track): Promise<void> {
+		try {
+			for (;;) {
+				const frame = await track.readFrame();
+				if (!frame) return;
+				this.#events.audio?.(frame);
+			}
+		} catch (err) {
+			if (!this.#stopped) console.warn("upcast: audio track ended:", errorText(err));
 		}
 	}
 
@@ -163,6 +194,19 @@ export function pickRendition(catalog: unknown): VideoRendition | undefined {
 			codedWidth: config.codedWidth,
 			codedHeight: config.codedHeight,
 		};
+	}
+	return undefined;
+}
+
+/** The first Opus rendition in the legacy container of a hang catalog, if any. */
+export function pickAudio(catalog: unknown): AudioRendition | undefined {
+	const renditions = (catalog as { audio?: { renditions?: Record<string, unknown> } })?.audio?.renditions;
+	if (!renditions || typeof renditions !== "object") return undefined;
+	for (const [track, value] of Object.entries(renditions)) {
+		const c = value as { codec?: string; container?: { kind?: string }; sampleRate?: number; numberOfChannels?: number; jitter?: number };
+		if (c?.codec !== "opus" || (c.container?.kind ?? "legacy") !== "legacy") continue;
+		if (!c.sampleRate || !c.numberOfChannels) continue;
+		return { track, codec: c.codec, sampleRate: c.sampleRate, numberOfChannels: c.numberOfChannels, jitter: c.jitter };
 	}
 	return undefined;
 }

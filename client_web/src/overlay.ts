@@ -38,11 +38,17 @@ export class Overlay {
 			`fps ${s.fps}  ${s.width}x${s.height}  ${s.codec ?? "-"}  predicted ${Math.round(s.predictedShare * 100)}%`,
 			`frames recv ${s.framesReceived}  dec ${s.framesDecoded}  shown ${s.framesPresented}  dropped ${s.dropped}`,
 			`lost ${s.framesLost}  groups left early ${s.groupsSkipped}  frame id ${s.lastPresentedFrameId ?? "-"}  inputs ${s.inputsSent}`,
+			s.audio.enabled
+				? `audio ${s.audio.running ? (s.audio.muted ? "muted" : `on ${Math.round(s.audio.volume * 100)}%`) : "click to start"}  packets ${s.audio.packets}  buffered ${s.audio.bufferedMs.toFixed(0)} ms  underrun ${s.audio.underrunFrames}`
+				: "audio -",
 			"",
 			"latency ms        p50     p95",
 		];
 		for (const stage of STAGES) {
 			const l = s.latency[stage];
+			if (stage.startsWith("audio") || stage === "av_offset") {
+				if (!l?.n) continue; // no audio: keep the overlay as it was
+			}
 			lines.push(`${stage.padEnd(15)} ${fmt(l?.p50)} ${fmt(l?.p95)}`);
 		}
 		lines.push(`${"input->photon".padEnd(15)} ${fmt(s.inputToPhoton.p50)} ${fmt(s.inputToPhoton.p95)}`);

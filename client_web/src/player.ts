@@ -2,6 +2,9 @@
 // decoder, the renderer, the overlay and the input publisher; plus window.upcast, the
 // hooks the end-to-end tests read.
 import * as Moq from "@moq/lite";
+import { AudioPlayer } from "./audio";
+import { mountAudioControls } from "./audio_controls";
+import { AudioTimingJoin, type AudioTimingRecord } from "./audio_timing";
 import { wallMs, wallUs } from "./clock";
 import { readConfig } from "./config";
 import { Announcement, type Status, keepConnected, sleep } from "./connection";
@@ -57,8 +60,24 @@ function main(): void {
 		if (status === "failed") error(state.status);
 	};
 
+	// Sound: made now (suspended until the first gesture), fed once the catalog has audio.
+	const audio = typeof AudioDecoder === "undefined" ? undefined : new AudioPlayer();
+	let audioEnabled = false;
+	const audioTiming = new AudioTimingJoin(latency);
+	if (audio) {
+		audio.onStamp = (ptsUs, stage, us) => audioTiming.stamp(ptsUs, stage, us);
+		mountAudioControls(document.getElementById("bar") as HTMLElement, audio);
+	}
+
 	const renderer = new Renderer(canvas);
 	renderer.onPresent = ({ ptsUs }) => {
+		const perf = performance.now();
+		if (audio && audioEnabled) {
+			audio.videoPresented(ptsUs, perf);
+			// A/V offset: the audio heard now minus the picture shown now (+: audio ahead).
+			const heard = audio.audibleMsAt(perf);
+			if (heard !== undefined && audio.bufferedMs > 0) latency.add("av_offset", heard - ptsUs / 1000);
+		}
 		const now = wallUs();
 		fps.tick(now / 1000);
 		timing.stamp(ptsUs, "present", now);
@@ -119,6 +138,17 @@ function main(): void {
 			p95: inputToPhoton.window.percentile(95),
 			samples: inputToPhoton.window.samples,
 		},
+		audio: {
+			enabled: audioEnabled,
+			running: audio?.running ?? false,
+			muted: audio?.muted ?? false,
+			volume: audio?.volume ?? 0,
+			packets: audio?.packets ?? 0,
+			decoded: audio?.decoded ?? 0,
+			bufferedMs: audio?.bufferedMs ?? 0,
+			underrunFrames: audio?.underrunFrames ?? 0,
+			sync: audio?.syncParts(),
+		},
 		errors: [...errors],
 	});
 
@@ -136,6 +166,8 @@ function main(): void {
 			height: canvas.height,
 			dataUrl: canvas.toDataURL("image/png"),
 		}),
+		/** The player's audio output (a GainNode) and its context: tests put an analyser on it. */
+		audioOutput: () => audio?.output ?? null,
 		/** Send an input message by hand (tests); returns it with seq and sent_ms. */
 		send: (message: Parameters<InputPublisher["send"]>[0]) => publisher.send(message),
 	};
@@ -197,7 +229,27 @@ function main(): void {
 						decoder.gap();
 					}
 				},
-				timing: (record) => timing.addRecord(record),
+				timing: (record) => {
+					const kind = (record as { kind?: string }).kind;
+					if (kind === "audio") audioTiming.addRecord(record as unknown as AudioTimingRecord);
+					else if (kind === undefined) timing.addRecord(record);
+				},
+				audioCatalog: (rendition) => {
+					if (!audio) return;
+					try {
+						audio.configure(rendition);
+						audioEnabled = true;
+					} catch (err) {
+						error(`audio configure ${rendition.codec}: ${errorText(err)}`);
+					}
+				},
+				audio: (payload) => {
+					try {
+						audio?.frame(payload);
+					} catch (err) {
+						error(`audio: ${errorText(err)}`);
+					}
+				},
 				groupSkipped: (count) => {
 					state.groupsSkipped += count;
 				},
@@ -225,6 +277,7 @@ function main(): void {
 			state.subscribed = false;
 			decoder.gap();
 			renderer.clear();
+			audio?.reset();
 			console.warn("upcast: subscription ended:", why);
 			if (!connectionOpen) return;
 			setStatus("waiting for broadcast", why);

@@ -67,7 +67,19 @@ export const SERVER_SPANS: ReadonlyArray<readonly [string, string, string]> = [
 /** Client stages the page measures itself, then the end-to-end total. */
 export const CLIENT_STAGES = ["network", "decode", "present", "total"] as const;
 
-export const STAGES: readonly string[] = [...SERVER_SPANS.map(([name]) => name), ...CLIENT_STAGES];
+/** Audio stages (client_web/src/audio_timing.ts AUDIO_SPANS) and the A/V offset at present. */
+export const AUDIO_STAGES = [
+	"audio_capture",
+	"audio_encode",
+	"audio_publish",
+	"audio_network",
+	"audio_decode",
+	"audio_play",
+	"audio_total",
+	"av_offset",
+] as const;
+
+export const STAGES: readonly string[] = [...SERVER_SPANS.map(([name]) => name), ...CLIENT_STAGES, ...AUDIO_STAGES];
 
 /** One Window per latency stage, in milliseconds. */
 export class StageLatency {
@@ -116,6 +128,8 @@ export interface Stats {
 	inputSubscribers: number;
 	/** Per stage, in ms: render ... publish (server), network, decode, present, total. */
 	latency: Summary;
+	/** The audio path: packets received, decoded, what the worklet holds and misses. */
+	audio: { enabled: boolean; running: boolean; muted: boolean; volume: number; packets: number; decoded: number; bufferedMs: number; underrunFrames: number; sync?: ReturnType<import("./audio").AudioPlayer["syncParts"]> };
 	/** Key press -> first frame showing it, ms. */
 	inputToPhoton: { p50?: number; p95?: number; samples: number[] };
 	errors: string[];

@@ -13,7 +13,9 @@ const element = document.createElement("moq-watch");
 element.setAttribute("url", url);
 element.setAttribute("name", name);
 element.setAttribute("visible", "always");
-element.setAttribute("muted", "");
+// Muted unless the URL asks for sound (?muted=0): a page that plays sound by itself is
+// what browsers block; with ?muted=0 sound starts at the first click, as browsers require.
+if (query.get("muted") !== "0") element.setAttribute("muted", "");
 element.append(document.createElement("canvas"));
 document.getElementById("player")?.append(element);
 

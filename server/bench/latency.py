@@ -34,6 +34,7 @@ from server.auth import generate_key, load_key
 from server.auth.minting import session_tokens
 from server.bench.report import BenchReport
 from server.frames.frame import Size
+from server.game.sounds import SoundSource
 from server.ops.browser_paths import CHROMIUM, CHROMIUM_ARGS, WEB_ROOT
 from server.relay.process import RelayEndpoint, RelayProcess
 from server.session.runner import StreamingSession, StreamSettings
@@ -75,8 +76,13 @@ class LiveStack:
         broadcast: str = "game",
         bitrate: int | None = None,
         frame_tap: FrameTap | None = None,
+        audio: bool = False,
+        sound: SoundSource | None = None,
     ) -> None:
+        """``audio``: publish sound too; ``sound``: what it plays (default: the game's)."""
         self.config = config
+        self._audio = audio
+        self._sound = sound
         self.broadcast = broadcast
         # A relay that checks tokens, as upcast up runs it: the session publishes with
         # its publisher token, the page sends inputs with the player's.
@@ -146,6 +152,7 @@ class LiveStack:
             frame_generation=self.config.frame_generation,
             source=self.config.source,
             gamepad=self.config.gamepad,
+            audio=self._audio,
         )
         self.session = StreamingSession(
             settings,
@@ -155,6 +162,7 @@ class LiveStack:
             worker_control=self.stack.control_path,
             on_upscaler_set=self.stack.remember_upscaler,
             frame_tap=self._frame_tap,
+            sound=self._sound,
         )
         task = asyncio.create_task(self.session.run(self._stop))
         await self.session.connected.wait()

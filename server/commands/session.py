@@ -31,6 +31,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fps", type=float, default=60.0, help="stream frame rate")
     parser.add_argument("--bitrate-kbps", type=int, default=None, help="video bitrate")
     parser.add_argument("--gop-seconds", type=float, default=2.0, help="keyframe interval")
+    parser.add_argument(
+        "--audio",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="publish the game's sound as an Opus track (default: on; --no-audio: video only)",
+    )
     parser.add_argument("--game-input", type=Path, default=None, help="game input socket")
     parser.add_argument("--worker-control", type=Path, default=None, help="worker control socket")
     parser.add_argument("--metrics-port", type=int, default=0, help="Prometheus port (0 = off)")
@@ -62,6 +68,7 @@ def run(args: argparse.Namespace) -> int:
         bitrate_kbps=args.bitrate_kbps,
         gop_seconds=args.gop_seconds,
         metrics_port=args.metrics_port,
+        audio=args.audio,
     )
     if stream is None:
         return 2
@@ -115,6 +122,7 @@ async def _main(args: argparse.Namespace, stream: StreamConfig) -> int:
             gop_seconds=args.gop_seconds,
             cert_hash_hex=args.cert_sha256,
             token=args.token,
+            audio=stream.audio,
         ),
         ring,
         display,

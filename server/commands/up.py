@@ -45,6 +45,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--gop-seconds", type=float, default=2.0, help="periodic keyframe interval (seconds)"
     )
     parser.add_argument(
+        "--audio",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="publish the game's sound as an Opus track (default: on; --no-audio: video only)",
+    )
+    parser.add_argument(
         "--metrics-port",
         type=int,
         default=None,
@@ -114,6 +120,7 @@ def run(args: argparse.Namespace) -> int:
         bitrate_kbps=args.bitrate_kbps,
         gop_seconds=args.gop_seconds,
         metrics_port=args.metrics_port,
+        audio=args.audio,
     )
     if config is None or stream is None:
         return 2

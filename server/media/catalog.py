@@ -13,6 +13,12 @@ Mirrors the zod schema of @moq/hang 0.3.5 (``catalog/root.js``, ``video.js``,
   number ``framerate``, optional boolean ``optimizeForLatency``.
 - ``description`` (hex avcC) is left out on purpose: for CMAF the player reads
   the avcC from ``init``, and one source of truth cannot disagree with itself.
+- ``audio.renditions`` (``catalog/audio.js``): track name -> ``codec`` ("opus"),
+  ``container`` (we use ``{"kind": "legacy"}``: each frame is a varint timestamp in
+  microseconds then the raw Opus packet, the container @moq/watch prefers for audio),
+  ``sampleRate`` and ``numberOfChannels`` (required), optional ``bitrate`` and
+  ``jitter`` (ms, one frame: a packet is published the moment it is encoded). Opus
+  needs no ``description``.
 """
 
 from __future__ import annotations
@@ -28,6 +34,7 @@ if TYPE_CHECKING:
     from server.media.encode import VideoEncoder
 
 VIDEO_TRACK = "video"
+AUDIO_TRACK = "audio"
 
 
 class _CatalogModel(BaseModel):
@@ -66,8 +73,26 @@ class VideoSection(_CatalogModel):
     display: Display | None = None
 
 
+class LegacyContainer(_CatalogModel):
+    kind: Literal["legacy"] = "legacy"
+
+
+class AudioRendition(_CatalogModel):
+    codec: str  # WebCodecs codec string: "opus"
+    container: LegacyContainer
+    sample_rate: int = Field(gt=0)
+    number_of_channels: int = Field(gt=0)
+    bitrate: int | None = Field(default=None, ge=0)
+    jitter: int | None = Field(default=None, ge=0)
+
+
+class AudioSection(_CatalogModel):
+    renditions: dict[str, AudioRendition]
+
+
 class Catalog(_CatalogModel):
     video: VideoSection
+    audio: AudioSection | None = None
 
     def to_json(self) -> bytes:
         """The catalog frame: compact UTF-8 JSON, optional fields left out when unset."""
@@ -97,10 +122,27 @@ def video_catalog(
     return Catalog(video=VideoSection(renditions={track: rendition}))
 
 
-def catalog_for(encoder: VideoEncoder, track: str = VIDEO_TRACK) -> Catalog:
-    """The catalog describing what ``encoder`` produces."""
+def audio_section(
+    *, sample_rate: int, channels: int, bitrate: int, frame_ms: int, track: str = AUDIO_TRACK
+) -> AudioSection:
+    """One Opus rendition in the legacy container on ``track``."""
+    rendition = AudioRendition(
+        codec="opus",
+        container=LegacyContainer(),
+        sample_rate=sample_rate,
+        number_of_channels=channels,
+        bitrate=bitrate,
+        jitter=frame_ms,
+    )
+    return AudioSection(renditions={track: rendition})
+
+
+def catalog_for(
+    encoder: VideoEncoder, track: str = VIDEO_TRACK, audio: AudioSection | None = None
+) -> Catalog:
+    """The catalog describing what ``encoder`` produces (and the audio, if any)."""
     cfg = encoder.config
-    return video_catalog(
+    video = video_catalog(
         codec=encoder.codec_string(),
         init_segment=encoder.init_segment,
         width=cfg.width,
@@ -109,3 +151,4 @@ def catalog_for(encoder: VideoEncoder, track: str = VIDEO_TRACK) -> Catalog:
         bitrate=cfg.target_bitrate,
         track=track,
     )
+    return video if audio is None else Catalog(video=video.video, audio=audio)

@@ -98,6 +98,7 @@ async def run_game_session(
             bitrate=stream.bitrate_bps,
             gop_seconds=stream.gop_seconds,
             cert_hash_hex=plan.cert_hash_hex,
+            audio=stream.audio,
             upscaler=config.upscaler,
             source=config.source,
             gamepad=config.gamepad,

@@ -7,7 +7,11 @@ It publishes three tracks and listens for viewers' inputs:
 - ``video``: one CMAF fragment (moof+mdat) per frame, a new group at each
   keyframe, so any group is decodable from its first frame.
 - ``timing``: one JSON record per video frame, in groups numbered like the
-  video's (see timing_track.py).
+  video's (see timing_track.py); with audio on, also one ``"kind": "audio"`` record
+  per audio packet (its stage stamps) in the same groups.
+- ``audio`` (when the session has sound): one hang ``legacy`` frame (varint pts in
+  microseconds + an Opus packet) per 10 ms, a new group every ``AUDIO_GROUP_FRAMES``
+  packets or when the pts jumps, so a late joiner starts within a tenth of a second.
 - ``status``: the session's state and the result of the last control request
   (server/session/session_control.py), one JSON frame per group and a new
   group per change, so a subscriber gets the current state at once.
@@ -24,11 +28,14 @@ gets data from the next group on: a group never starts without its keyframe.
 from __future__ import annotations
 
 import logging
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from server.frames.frame import FrameMeta
 from server.frames.timing import Stage, stamp
+from server.media.audio_encode import legacy_frame
+from server.media.catalog import AUDIO_TRACK
 from server.media.encode import EncodedFrame
 from server.moq import paths
 from server.moq.errors import ErrorCode
@@ -43,16 +50,20 @@ from server.moq.events import (
     SubscribeRequested,
 )
 from server.moq.session import MoqSession
+from server.session.audio_capture import CapturedAudio
 from server.session.session_control import STATUS_TRACK
 from server.session.timing_track import TRACK_NAME as TIMING_TRACK
-from server.session.timing_track import encode_timing, timing_record
+from server.session.timing_track import audio_timing_record, encode_timing, timing_record
 
 log = logging.getLogger(__name__)
 
 CATALOG_TRACK = "catalog.json"
 VIDEO_TRACK = "video"
 INPUT_TRACK = "input"
-TRACKS = (CATALOG_TRACK, VIDEO_TRACK, TIMING_TRACK, STATUS_TRACK)
+TRACKS = (CATALOG_TRACK, VIDEO_TRACK, TIMING_TRACK, STATUS_TRACK, AUDIO_TRACK)
+# A broadcast without sound refuses ``audio`` like any unknown track.
+SILENT_TRACKS = (CATALOG_TRACK, VIDEO_TRACK, TIMING_TRACK, STATUS_TRACK)
+AUDIO_GROUP_FRAMES = 10  # 100 ms of Opus per group: what a joining viewer may wait for
 MAX_INPUT_BROADCASTS = 64  # viewers sending input at once; more are ignored (and logged)
 
 
@@ -66,6 +77,8 @@ class _Subscriber:
 class BroadcastStats:
     frames_published: int = 0
     groups: int = 0
+    audio_packets: int = 0
+    audio_groups: int = 0
     input_frames: int = 0
     input_broadcasts: int = 0
     subscribers: dict[str, int] = field(default_factory=dict)
@@ -79,8 +92,10 @@ class GameBroadcast:
         *,
         on_input: Callable[[str, bytes], None],
         on_keyframe_wanted: Callable[[], None],
+        audio: bool = False,
     ) -> None:
         self.name = paths.normalize(name)
+        self.tracks = TRACKS if audio else SILENT_TRACKS
         self.catalog_json = catalog_json
         self.input_prefix = paths.join(self.name, "input")
         self.stats = BroadcastStats()
@@ -96,6 +111,8 @@ class GameBroadcast:
         self.status_json: bytes | None = None  # None until the session says something
         self._status_seq = -1
         self._published = 0  # frames published: the timing records' ``n``
+        self._audio_seq = -1
+        self._audio_in_group = AUDIO_GROUP_FRAMES  # the first packet opens a group
         # What the stream runs now (upscaler, scale), sent in every timing record so a
         # page that joins later shows the server's settings, not its own defaults.
         self.stream_state: dict[str, str | float | bool] = {}
@@ -144,7 +161,7 @@ class GameBroadcast:
     def _on_subscribe(self, e: SubscribeRequested) -> None:
         session = self._session
         assert session is not None
-        if paths.normalize(e.broadcast) != self.name or e.track not in TRACKS:
+        if paths.normalize(e.broadcast) != self.name or e.track not in self.tracks:
             log.info("refusing subscribe to %s/%s: no such track", e.broadcast, e.track)
             session.reject_subscribe(e.request_id, ErrorCode.NOT_FOUND)
             return
@@ -157,6 +174,8 @@ class GameBroadcast:
             self._send_catalog(e.request_id, sub)
         elif e.track == STATUS_TRACK:
             self._send_status(e.request_id)
+        elif e.track == AUDIO_TRACK:
+            pass  # every audio group starts clean: the subscriber joins at the next one
         else:
             self._on_keyframe_wanted()
 
@@ -216,7 +235,7 @@ class GameBroadcast:
             session.unsubscribe(subscription)
 
     def _count_subscribers(self) -> None:
-        counts = dict.fromkeys(TRACKS, 0)
+        counts = dict.fromkeys(self.tracks, 0)
         for sub in self._subscribers.values():
             counts[sub.track] += 1
         self.stats.subscribers = counts
@@ -260,3 +279,33 @@ class GameBroadcast:
             if sub.group_stream is not None:
                 session.finish_group(sub.group_stream)
             sub.group_stream = session.open_group(request_id, self._group_seq)
+
+    def publish_audio(self, captured: CapturedAudio) -> None:
+        """Put one Opus packet on the audio subscribers' group and its stamps on timing."""
+        new_group = captured.discontinuity or self._audio_in_group >= AUDIO_GROUP_FRAMES
+        if new_group:
+            self._audio_seq += 1
+            self._audio_in_group = 0
+            self.stats.audio_groups += 1
+        self._audio_in_group += 1
+        self.stats.audio_packets += 1
+        session = self._session
+        if session is None or session.closed:
+            return
+        audio = [(r, s) for r, s in self._subscribers.items() if s.track == AUDIO_TRACK]
+        if new_group:
+            for request_id, sub in audio:
+                if sub.group_stream is not None:
+                    session.finish_group(sub.group_stream)
+                sub.group_stream = session.open_group(request_id, self._audio_seq)
+        publish_us = time.time_ns() // 1000
+        frame = legacy_frame(captured.packet)
+        for _, sub in audio:
+            if sub.group_stream is not None:
+                session.write_frame(sub.group_stream, frame)
+        timing = [s for s in self._subscribers.values() if s.track == TIMING_TRACK]
+        if timing:
+            payload = encode_timing(audio_timing_record(captured, publish_us=publish_us))
+            for sub in timing:
+                if sub.group_stream is not None:
+                    session.write_frame(sub.group_stream, payload)

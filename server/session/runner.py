@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,12 +23,15 @@ from prometheus_client import CollectorRegistry
 from server.frames.frame import Size
 from server.frames.monitor import FrameRateMonitor
 from server.frames.ring import FrameRing
-from server.media.catalog import catalog_for
+from server.game.sounds import GameSounds, SoundSource
+from server.media.audio_encode import OpusEncoder
+from server.media.catalog import AudioSection, audio_section, catalog_for
 from server.media.encode import EncoderConfig, VideoEncoder
 from server.moq.events import Event
 from server.ops.redact import redact_url
 from server.quic.client import WtConnectError
 from server.quic.moq_link import MoqLink, connect_moq
+from server.session.audio_capture import AudioCapture, CapturedAudio
 from server.session.broadcast import GameBroadcast
 from server.session.capture import CapturedFrame, CaptureThread
 from server.session.gamepad_keys import GamepadKeyMap
@@ -56,6 +60,9 @@ class StreamSettings:
     # "game": the built-in renderer; "x11": a captured application (colour only; raw input)
     source: str = "game"
     gamepad: GamepadKeyMap | None = None  # gamepad -> keys (None: the standard default)
+    # Publish the game's sound (Opus, track ``audio``). Off here so library users opt
+    # in; the commands (upcast up, serve, session) turn it on unless --no-audio.
+    audio: bool = False
 
 
 class StreamingSession:
@@ -71,7 +78,9 @@ class StreamingSession:
         on_upscaler_set: Callable[[str], None] | None = None,
         on_scale_request: Callable[[float], None] | None = None,
         frame_tap: Callable[[int, npt.NDArray[np.uint8]], None] | None = None,
+        sound: SoundSource | None = None,
     ) -> None:
+        """``sound``: what the audio track plays (default: the reference game's sounds)."""
         self.settings = settings
         self._frame_tap = frame_tap
         self.ring_u = ring_u
@@ -98,11 +107,29 @@ class StreamingSession:
         )
         self._on_upscaler_set = on_upscaler_set
         self._on_scale_request = on_scale_request
+        self.sound: SoundSource = sound if sound is not None else GameSounds()
+        self.audio_encoder: OpusEncoder | None = None
+        audio: AudioSection | None = None
+        if settings.audio:
+            try:
+                self.audio_encoder = OpusEncoder()
+            except Exception:
+                log.exception("no Opus encoder: streaming without audio")
+            else:
+                cfg = self.audio_encoder.config
+                audio = audio_section(
+                    sample_rate=cfg.sample_rate,
+                    channels=cfg.channels,
+                    bitrate=cfg.bitrate,
+                    frame_ms=cfg.frame_us // 1000,
+                )
+        self.audio: AudioCapture | None = None
         self.broadcast = GameBroadcast(
             settings.broadcast,
-            catalog_for(self.encoder).to_json(),
+            catalog_for(self.encoder, audio=audio).to_json(),
             on_input=self.router.handle,
             on_keyframe_wanted=self.encoder.request_keyframe,
+            audio=audio is not None,
         )
         # The page disables what the source cannot do (a captured application: methods
         # that need depth and motion, scale changes, frame generation).
@@ -128,20 +155,28 @@ class StreamingSession:
         if link is not None and not link.closed:
             link.close(0, "reconnecting")
 
+    def _click(self) -> None:
+        if self.audio is not None:
+            self.audio.click()
+
     def _upscaler_set(self, name: str) -> None:
+        self._click()
         self.broadcast.stream_state["upscaler"] = name
         if self._on_upscaler_set is not None:
             self._on_upscaler_set(name)
 
     def _scale_requested(self, scale: float) -> None:
+        self._click()
         self.broadcast.stream_state["scale"] = round(scale, 3)
         if self._on_scale_request is not None:
             self._on_scale_request(scale)
 
     def _frame_generation_set(self, on: bool) -> None:
+        self._click()
         self.broadcast.stream_state["frame_generation"] = on
 
     def _cache_policy_set(self, policy: str | None) -> None:
+        self._click()
         if policy is None:
             self.broadcast.stream_state.pop("cache_policy", None)
         else:
@@ -151,8 +186,20 @@ class StreamingSession:
 
     async def run(self, stop: asyncio.Event) -> None:
         self._loop = asyncio.get_running_loop()
+        origin: int | None = None
+        if self.audio_encoder is not None:
+            # One origin for both media clocks: a sound and its frame share a pts.
+            origin = time.monotonic_ns()
+            self.audio = AudioCapture(
+                self.sound, self.audio_encoder, self._from_audio_thread, origin_ns=origin
+            )
+            self.audio.start()
         self._capture = CaptureThread(
-            self.ring_u, self.encoder, self._from_capture_thread, frame_tap=self._frame_tap
+            self.ring_u,
+            self.encoder,
+            self._from_capture_thread,
+            frame_tap=self._frame_tap,
+            pts_origin_ns=origin,
         )
         self._capture.start()
         tasks = [
@@ -167,13 +214,28 @@ class StreamingSession:
                 task.cancel()
             await asyncio.gather(*tasks, return_exceptions=True)
             self._capture.stop()
+            if self.audio is not None:
+                self.audio.stop()
             if self.link is not None and not self.link.closed:
                 self.link.close(0, "session ending")
 
     def _from_capture_thread(self, frame: CapturedFrame) -> None:
+        if self.audio is not None:
+            self.audio.frame(frame.meta)
         loop = self._loop
         if loop is not None and not loop.is_closed():
             loop.call_soon_threadsafe(self._publish, frame)
+
+    def _from_audio_thread(self, captured: CapturedAudio) -> None:
+        loop = self._loop
+        if loop is not None and not loop.is_closed():
+            loop.call_soon_threadsafe(self._publish_audio, captured)
+
+    def _publish_audio(self, captured: CapturedAudio) -> None:
+        self.broadcast.publish_audio(captured)
+        link = self.link
+        if link is not None and not link.closed:
+            link.flush()
 
     def _publish(self, frame: CapturedFrame) -> None:
         self.broadcast.publish_frame(frame.encoded, frame.meta)

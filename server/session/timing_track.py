@@ -11,10 +11,13 @@ counts published frames so a viewer can tell what it lost.
 from __future__ import annotations
 
 import json
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from server.frames.frame import FrameFlags, FrameMeta
 from server.frames.timing import Stage
+
+if TYPE_CHECKING:
+    from server.session.audio_capture import CapturedAudio
 
 TRACK_NAME = "timing"
 
@@ -34,6 +37,27 @@ def timing_record(meta: FrameMeta, *, n: int, pts_us: int, keyframe: bool) -> di
         "predicted": bool(meta.flags & FrameFlags.PREDICTED),
         "input_seq": meta.input_seq,
         "stamps": stamps,
+    }
+
+
+def audio_timing_record(captured: CapturedAudio, *, publish_us: int) -> dict[str, Any]:
+    """One audio packet's stamps. ``kind`` tells it from a video record, and its time is
+    ``audio_pts_us`` (not ``pts_us``) so no reader can mistake it for a video frame's.
+
+    Stages: ``audio_sample`` (when its first sample happens in the game: the media
+    clock's time of its pts), ``audio_capture`` (synthesised), ``audio_encode_start``,
+    ``audio_encode_end``, ``audio_publish``; the player adds receive, decode and play."""
+    stamps = captured.stamps
+    return {
+        "kind": "audio",
+        "audio_pts_us": captured.packet.pts_us,
+        "stamps": {
+            "audio_sample": stamps.sample,
+            "audio_capture": stamps.capture,
+            "audio_encode_start": stamps.encode_start,
+            "audio_encode_end": stamps.encode_end,
+            "audio_publish": publish_us,
+        },
     }
 
 

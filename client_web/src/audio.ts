@@ -1,0 +1,243 @@
+// The game's sound: Opus (track `audio`, hang legacy container) -> WebCodecs
+// AudioDecoder -> an AudioWorklet that plays each sample at the time its video frame
+// is shown.
+//
+// Sync: a video frame with pts P is presented at page time P + videoOffset (the
+// player shows frames as they come, so videoOffset is the pipeline's latency, read
+// from the last presented frames: their first quartile, see VIDEO_WINDOW). Audio with pts P is scheduled to be *heard* at the
+// same P + videoOffset, which means holding it back: the audio of a moment arrives
+// about when its frame does and video still has to decode and wait for a refresh. If
+// audio ever arrives too late for that, it plays as early as its own jitter buffer
+// allows instead (audio ahead of nothing is better than silence) and the A/V offset
+// figure shows the difference.
+// Browsers start an AudioContext only after a user gesture: the context is made at
+// once (suspended) and resumed on the first click or key; the mute button is a gesture.
+import { WORKLET_NAME, WORKLET_SOURCE } from "./audio_worklet";
+import { wallUs } from "./clock";
+import { Window } from "./stats";
+
+export interface AudioRendition {
+	track: string;
+	codec: string;
+	sampleRate: number;
+	numberOfChannels: number;
+	jitter?: number;
+}
+
+/** Audio jitter buffer: how far ahead of its arrival a chunk is scheduled at least. */
+export const JITTER_MS = 20;
+// A new target closer than this to the offset in use is ignored: every change is a
+// (faded) jump, so it must be rare; 10 ms keeps sync well inside +-40 ms.
+const RESYNC_MS = 10;
+// Short windows and a low quantile for the video: a viewer that joins first sees a burst
+// of old frames (the relay's cached group, decoded at once), whose large offsets must
+// age out within a second, not hold the sound back for as long as they are the median.
+const VIDEO_WINDOW = 30; // presented frames the video offset is the first quartile of
+const VIDEO_QUANTILE = 25;
+// Video this much later than the sound could play is catching up (a viewer that joined
+// decodes the relay's cached group, up to a keyframe interval old, then skips ahead):
+// the sound does not wait for it, it plays as early as it can and syncs once it has.
+const MAX_HOLD_MS = 250;
+const LATE_WINDOW = 100; // chunks (1 s) whose 95th percentile arrival bounds the target (one stall of the page must not move it)
+
+/** Per-packet stamps the page adds, wall-clock microseconds. */
+export interface AudioClientStamps {
+	receive?: number;
+	decode?: number;
+	play?: number;
+}
+
+export class AudioPlayer {
+	readonly context: AudioContext;
+	readonly output: GainNode;
+	#node?: AudioWorkletNode;
+	#ready: Promise<void>;
+	#decoder?: AudioDecoder;
+	#rendition?: AudioRendition;
+	#offsetFrames?: number; // what the worklet plays with (context frame - media frame)
+	#targetMs?: number; // the target that offset was made for
+	#mappedRunning = false; // whether it was mapped with the running output clock
+	readonly #videoOffsets = new Window(VIDEO_WINDOW); // ms: present perf time - pts
+	readonly #arrivals = new Window(LATE_WINDOW); // ms: arrival perf time + jitter - pts
+	// Input pts in decode order. Why not AudioData.timestamp: Chromium's Opus decoder
+	// counts output samples from the first input's timestamp, so after any gap in the
+	// input (a join, a skipped group, a paused source) its timestamps run late for good.
+	// One Opus packet gives one output, in order, so the input's own pts is exact.
+	readonly #pending: number[] = [];
+	/** Audio pts (us) -> client stamps; read by the timing join. */
+	onStamp?: (ptsUs: number, stage: keyof AudioClientStamps, wallUs: number) => void;
+	packets = 0;
+	decoded = 0;
+	underrunFrames = 0;
+	bufferedMs = 0;
+	muted = false;
+	volume = 0.8;
+	/** Whether sound was already on when the latest gesture began (else it started it). */
+	runningAtLastGesture = false;
+
+	constructor() {
+		this.context = new AudioContext({ latencyHint: "interactive", sampleRate: 48000 });
+		this.output = this.context.createGain();
+		this.output.connect(this.context.destination);
+		this.#applyGain();
+		const url = URL.createObjectURL(new Blob([WORKLET_SOURCE], { type: "text/javascript" }));
+		this.#ready = this.context.audioWorklet.addModule(url).then(() => {
+			const node = new AudioWorkletNode(this.context, WORKLET_NAME, { outputChannelCount: [1] });
+			node.port.onmessage = (event) => this.#onReport(event.data);
+			node.connect(this.output);
+			this.#node = node;
+			if (this.#offsetFrames !== undefined) node.port.postMessage({ type: "offset", offset: this.#offsetFrames });
+		});
+		const unlock = (): void => {
+			this.runningAtLastGesture = this.running;
+			void this.context.resume();
+		};
+		for (const type of ["pointerdown", "keydown", "touchend"]) window.addEventListener(type, unlock, { capture: true });
+	}
+
+	get running(): boolean {
+		return this.context.state === "running";
+	}
+
+	setMuted(muted: boolean): void {
+		this.muted = muted;
+		this.#applyGain();
+		if (!muted) void this.context.resume();
+	}
+
+	setVolume(volume: number): void {
+		this.volume = Math.min(1, Math.max(0, volume));
+		this.#applyGain();
+	}
+
+	#applyGain(): void {
+		// A short ramp: a mute or volume step must not click either.
+		this.output.gain.setTargetAtTime(this.muted ? 0 : this.volume, this.context.currentTime, 0.01);
+	}
+
+	configure(rendition: AudioRendition): void {
+		if (this.#rendition?.track === rendition.track && this.#decoder?.state === "configured") return;
+		this.#decoder?.close();
+		this.#pending.length = 0;
+		this.#rendition = rendition;
+		this.#decoder = new AudioDecoder({
+			output: (data) => this.#decodedData(data),
+			error: (err) => console.warn("upcast: audio decoder:", err.message),
+		});
+		this.#decoder.configure({ codec: rendition.codec, sampleRate: rendition.sampleRate, numberOfChannels: rendition.numberOfChannels });
+	}
+
+	/** One legacy frame: varint pts (us) + Opus packet. */
+	frame(payload: Uint8Array): void {
+		const decoder = this.#decoder;
+		if (!decoder || decoder.state !== "configured") return;
+		const [ptsUs, size] = readVarint(payload);
+		const now = wallUs();
+		this.packets++;
+		this.#pending.push(ptsUs);
+		this.onStamp?.(ptsUs, "receive", now);
+		decoder.decode(new EncodedAudioChunk({ type: "key", timestamp: ptsUs, data: payload.subarray(size) }));
+	}
+
+	/** The subscription restarted: forget what is queued, keep the context. */
+	reset(): void {
+		this.#node?.port.postMessage({ type: "reset" });
+		this.#arrivals.clear();
+		this.#videoOffsets.clear();
+		this.#targetMs = undefined;
+	}
+
+	/** The player showed the video frame with pts ``ptsUs`` at page time ``perfMs``. */
+	videoPresented(ptsUs: number, perfMs: number): void {
+		this.#videoOffsets.push(perfMs - ptsUs / 1000);
+	}
+
+	#decodedData(data: AudioData): void {
+		const ptsUs = this.#pending.shift() ?? data.timestamp;
+		const samples = new Float32Array(data.numberOfFrames);
+		data.copyTo(samples, { planeIndex: 0, format: "f32-planar" });
+		const rate = data.sampleRate;
+		data.close();
+		this.decoded++;
+		const now = wallUs();
+		this.onStamp?.(ptsUs, "decode", now);
+		this.#arrivals.push(performance.now() + JITTER_MS - ptsUs / 1000);
+		this.#retarget();
+		this.#node?.port.postMessage({ type: "chunk", start: Math.round((ptsUs * rate) / 1e6), data: samples }, [samples.buffer]);
+	}
+
+	/** The sync target's parts (ms, page time minus pts): for the stats and the tests. */
+	syncParts(): { videoMs?: number; arrivalMs?: number; targetMs?: number; offsetFrames?: number; contextMs: number } {
+		return {
+			videoMs: this.#videoOffsets.percentile(VIDEO_QUANTILE),
+			arrivalMs: this.#arrivals.percentile(95),
+			targetMs: this.#targetMs,
+			offsetFrames: this.#offsetFrames,
+			contextMs: this.context.currentTime * 1000,
+		};
+	}
+
+	/** Page time (ms) at which audio pts P should be heard, minus P. */
+	targetOffsetMs(): number | undefined {
+		const earliest = this.#arrivals.percentile(95);
+		if (earliest === undefined) return undefined;
+		const video = this.#videoOffsets.percentile(VIDEO_QUANTILE);
+		if (video === undefined || video - earliest > MAX_HOLD_MS) return earliest;
+		return Math.max(video, earliest);
+	}
+
+	#retarget(): void {
+		const target = this.targetOffsetMs();
+		if (target === undefined) return;
+		const running = this.running;
+		// Compare targets, not sample offsets: the output clock's reading jitters by a
+		// callback or two, and each change of offset is a (faded) jump, so only a real
+		// move of the target, or the context starting, may cause one.
+		if (this.#targetMs !== undefined && this.#mappedRunning === running && Math.abs(target - this.#targetMs) < RESYNC_MS) return;
+		const ts = this.context.getOutputTimestamp();
+		let offset: number;
+		if (!running || !ts.contextTime || !ts.performanceTime) {
+			// Not playing yet (no gesture): map with the render clock; redone once it runs.
+			offset = Math.round((this.context.currentTime + (target - performance.now()) / 1000) * this.context.sampleRate);
+		} else {
+			// The sample at context time C is heard at performanceTime + (C - contextTime).
+			offset = Math.round((ts.contextTime + (target - ts.performanceTime) / 1000) * this.context.sampleRate);
+		}
+		this.#targetMs = target;
+		this.#mappedRunning = running && !!ts.contextTime && !!ts.performanceTime;
+		this.#offsetFrames = offset;
+		this.#node?.port.postMessage({ type: "offset", offset });
+	}
+
+	/** Audio pts (ms) heard at page time ``perfMs``; undefined until audio plays. */
+	audibleMsAt(perfMs: number): number | undefined {
+		if (this.#offsetFrames === undefined || !this.running) return undefined;
+		const ts = this.context.getOutputTimestamp();
+		if (ts.contextTime === undefined || ts.performanceTime === undefined) return undefined;
+		const contextFrame = (ts.contextTime + (perfMs - ts.performanceTime) / 1000) * this.context.sampleRate;
+		return ((contextFrame - this.#offsetFrames) / this.context.sampleRate) * 1000;
+	}
+
+	#onReport(m: { offset: number; buffered: number; underrun: number; played: [number, number][] }): void {
+		const rate = this.context.sampleRate;
+		this.bufferedMs = (m.buffered / rate) * 1000;
+		this.underrunFrames = m.underrun;
+		if (!this.running) return;
+		const ts = this.context.getOutputTimestamp();
+		if (ts.contextTime === undefined || ts.performanceTime === undefined) return;
+		for (const [start, contextFrame] of m.played) {
+			// Heard when its context frame reaches the output.
+			const heardPerf = ts.performanceTime + (contextFrame / rate - ts.contextTime) * 1000;
+			const ptsUs = Math.floor((start * 1e6) / rate); // the server's pts_us (floored)
+			this.onStamp?.(ptsUs, "play", Math.round((performance.timeOrigin + heardPerf) * 1000));
+		}
+	}
+}
+
+function readVarint(bytes: Uint8Array): [number, number] {
+	const first = bytes[0];
+	const size = 1 << (first >> 6);
+	let value = first & 0x3f;
+	for (let i = 1; i < size; i++) value = value * 256 + bytes[i];
+	return [value, size];
+}
