@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -29,3 +30,16 @@ def browser_marks(page: Path) -> list[pytest.MarkDecorator]:
             not CHROMIUM.exists(), reason="no /usr/bin/chromium (apt install chromium)"
         ),
     ]
+
+
+def picture_point(page: Any, x: float, y: float) -> tuple[float, float]:
+    """Client coordinates of (x, y) in 0..1 of the player canvas's picture (#screen,
+    object-fit: contain: letterbox bars excluded)."""
+    box = page.locator("#screen").bounding_box()
+    w, h = page.evaluate(
+        "() => [document.getElementById('screen').width, document.getElementById('screen').height]"
+    )
+    scale = min(box["width"] / w, box["height"] / h)
+    left = box["x"] + (box["width"] - w * scale) / 2
+    top = box["y"] + (box["height"] - h * scale) / 2
+    return left + x * w * scale, top + y * h * scale

@@ -8,6 +8,8 @@ import signal
 import threading
 from pathlib import Path
 
+from server.stack.args import add_x11_source_arguments
+
 log = logging.getLogger(__name__)
 
 
@@ -38,29 +40,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--metrics-port", type=_port, default=0, help="Prometheus /metrics TCP port (0: off)"
     )
     x11 = parser.add_argument_group("X11 source (--source x11: stream a real application)")
-    x11.add_argument(
-        "--source",
-        choices=("game", "x11"),
-        default="game",
-        help="game: the built-in renderer (default); x11: capture an X11 display at --size",
-    )
-    x11.add_argument(
-        "--app",
-        default=None,
-        help="the application to start on the display, as one shell-quoted string, "
-        'e.g. "/usr/games/pingus --geometry 640x360" (x11 only)',
-    )
-    x11.add_argument(
-        "--app-exit",
-        choices=("stop", "restart"),
-        default="stop",
-        help="when the application exits: stop the session (default) or restart it",
-    )
-    x11.add_argument(
-        "--x11-display",
-        default=None,
-        help="capture this existing X server (e.g. :0) instead of starting Xvfb",
-    )
+    add_x11_source_arguments(x11, size_flag="--size")
 
 
 def _port(text: str) -> int:

@@ -48,25 +48,7 @@ def add_session_arguments(parser: argparse.ArgumentParser) -> None:
         "budget, budget@DB, every_N, deepcache, motion (switchable at run time)",
     )
     x11 = parser.add_argument_group("stream a real application (--source x11)")
-    x11.add_argument(
-        "--source",
-        choices=("game", "x11"),
-        default="game",
-        help="game: the built-in renderer (default); x11: an application on a virtual X "
-        "display (Xvfb) of --render-size, captured and streamed; spatial upscalers only",
-    )
-    x11.add_argument(
-        "--app",
-        default=None,
-        help='x11: the application, one quoted command line, e.g. "/usr/games/pingus '
-        '--geometry 640x360" (make it draw at --render-size)',
-    )
-    x11.add_argument(
-        "--app-exit",
-        choices=("stop", "restart"),
-        default="stop",
-        help="x11: when the application exits, stop the session (default) or restart it",
-    )
+    add_x11_source_arguments(x11, size_flag="--render-size")
     x11.add_argument(
         "--gamepad-map",
         default=None,
@@ -74,7 +56,31 @@ def add_session_arguments(parser: argparse.ArgumentParser) -> None:
         "(default: d-pad and left stick = arrows, A space, B control, X shift, Y alt, "
         "start enter, back escape)",
     )
-    x11.add_argument(
+
+
+def add_x11_source_arguments(group: argparse._ArgumentGroup, *, size_flag: str) -> None:
+    """--source, --app, --app-exit, --x11-display: for upcast up/preview/serve and for
+    the game process itself (whose screen size is ``size_flag``)."""
+    group.add_argument(
+        "--source",
+        choices=("game", "x11"),
+        default="game",
+        help="game: the built-in renderer (default); x11: an application on a virtual X "
+        f"display (Xvfb) of {size_flag}, captured and streamed; spatial upscalers only",
+    )
+    group.add_argument(
+        "--app",
+        default=None,
+        help='x11: the application, one quoted command line, e.g. "/usr/games/pingus '
+        f'--geometry 640x360" (make it draw at {size_flag})',
+    )
+    group.add_argument(
+        "--app-exit",
+        choices=("stop", "restart"),
+        default="stop",
+        help="x11: when the application exits, stop the session (default) or restart it",
+    )
+    group.add_argument(
         "--x11-display",
         default=None,
         help="x11: capture this running X server (e.g. :0) instead of starting Xvfb",

@@ -15,7 +15,7 @@ from typing import Any
 import pytest
 
 from server.ops.browser_paths import WEB_ROOT as DIST
-from tests.chromium import browser_marks
+from tests.chromium import browser_marks, picture_point
 
 pytestmark = browser_marks(DIST / "test" / "loopback.html")
 
@@ -151,18 +151,6 @@ def test_ctrl_and_meta_shortcuts_stay_the_browsers(page: Any) -> None:
     assert _keys(page, 6) == [["control"], ["control", "f"], ["control"], [], ["z"], []]
 
 
-def _picture_point(page: Any, x: float, y: float) -> tuple[float, float]:
-    """Client coordinates of (x, y) in 0..1 of the canvas picture under object-fit: contain."""
-    box = page.locator("#screen").bounding_box()
-    w, h = page.evaluate(
-        "() => [document.getElementById('screen').width, document.getElementById('screen').height]"
-    )
-    scale = min(box["width"] / w, box["height"] / h)
-    left = box["x"] + (box["width"] - w * scale) / 2
-    top = box["y"] + (box["height"] - h * scale) / 2
-    return left + x * w * scale, top + y * h * scale
-
-
 def _wait_pointer(page: Any, x: float, y: float, buttons: int) -> None:
     """Until the last pointer message is (x, y, buttons), to within a picture pixel."""
     page.wait_for_function(
@@ -185,29 +173,29 @@ def test_pointer_is_absolute_over_the_picture_with_its_buttons(
         size,
     )
     _unfocus(page)
-    page.mouse.move(*_picture_point(page, 0.5, 0.5))  # no focus, no button: not the game's
+    page.mouse.move(*picture_point(page, 0.5, 0.5))  # no focus, no button: not the game's
     _settle(page)
     assert _inputs(page, "pointer") == []
     # The first press on the picture is the game's at once (and gives the player focus).
-    page.mouse.move(*_picture_point(page, 0.25, 0.5))
+    page.mouse.move(*picture_point(page, 0.25, 0.5))
     page.mouse.down()
     _wait_pointer(page, 0.25, 0.5, 1)
     assert len(_inputs(page, "pointer")) == 1
-    page.mouse.move(*_picture_point(page, 0.75, 0.1), steps=5)
+    page.mouse.move(*picture_point(page, 0.75, 0.1), steps=5)
     _wait_pointer(page, 0.75, 0.1, 1)
-    page.mouse.move(*_picture_point(page, 1.5, -0.5))  # off the picture while held: clamped
+    page.mouse.move(*picture_point(page, 1.5, -0.5))  # off the picture while held: clamped
     page.mouse.up()
     _wait_pointer(page, 1, 0, 0)
     assert all(p["buttons"] == 1 for p in _inputs(page, "pointer")[:-1])
     # Focused, a move over a bar is the picture's nearest edge.
     if bar == "letterbox":  # bars above and below
-        page.mouse.move(*_picture_point(page, 0.3, -0.05))
+        page.mouse.move(*picture_point(page, 0.3, -0.05))
         _wait_pointer(page, 0.3, 0, 0)
     else:  # bars left and right
-        page.mouse.move(*_picture_point(page, -0.05, 0.3))
+        page.mouse.move(*picture_point(page, -0.05, 0.3))
         _wait_pointer(page, 0, 0.3, 0)
     # Right and middle buttons; the context menu stays closed.
-    page.mouse.move(*_picture_point(page, 0.5, 0.5))
+    page.mouse.move(*picture_point(page, 0.5, 0.5))
     for button, mask in (("right", 2), ("middle", 4)):
         page.mouse.down(button=button)
         _wait_pointer(page, 0.5, 0.5, mask)
@@ -217,7 +205,7 @@ def test_pointer_is_absolute_over_the_picture_with_its_buttons(
     assert menus and all(m["prevented"] for m in menus)
     # Moves are coalesced: 20 in one task are one message, the last position.
     before = len(_inputs(page, "pointer"))
-    points = [_picture_point(page, 0.5, 0.02 * i) for i in range(1, 21)]
+    points = [picture_point(page, 0.5, 0.02 * i) for i in range(1, 21)]
     page.evaluate(
         """points => { const c = document.getElementById('screen');
             for (const [x, y] of points) c.dispatchEvent(
@@ -230,7 +218,7 @@ def test_pointer_is_absolute_over_the_picture_with_its_buttons(
     assert len(moved) == 1 and moved[0]["y"] == pytest.approx(0.4, abs=3e-3)
     # Without focus, moves are the page's again.
     _unfocus(page)
-    page.mouse.move(*_picture_point(page, 0.3, 0.3))
+    page.mouse.move(*picture_point(page, 0.3, 0.3))
     _settle(page)
     assert len(_inputs(page, "pointer")) == before + 1
 

@@ -26,6 +26,7 @@ from server.bench.app_presets import PRESETS, PresetError
 from server.bench.latency import LiveStack
 from server.bench.snapshots import snapshot_psnr
 from server.stack.local import SessionConfig
+from tests.chromium import picture_point
 from tests.e2e.conftest import (
     FrameTap,
     Live,
@@ -169,18 +170,6 @@ def blue_share(thumb: Any) -> float:
     """How much of the picture is the plain blue of Neverball's option screens."""
     r, b = thumb[..., 0], thumb[..., 2]
     return float(((b > 120) & (b > r + 60)).mean())
-
-
-def picture_point(page: Any, x: float, y: float) -> tuple[float, float]:
-    """Client coordinates of (x, y) in 0..1 of the canvas picture (object-fit: contain)."""
-    box = page.locator("#screen").bounding_box()
-    w, h = page.evaluate(
-        "() => [document.getElementById('screen').width, document.getElementById('screen').height]"
-    )
-    scale = min(box["width"] / w, box["height"] / h)
-    left = box["x"] + (box["width"] - w * scale) / 2
-    top = box["y"] + (box["height"] - h * scale) / 2
-    return left + x * w * scale, top + y * h * scale
 
 
 @pytest.fixture(scope="module")
