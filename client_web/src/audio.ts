@@ -38,6 +38,7 @@ const VIDEO_QUANTILE = 25;
 // decodes the relay's cached group, up to a keyframe interval old, then skips ahead):
 // the sound does not wait for it, it plays as early as it can and syncs once it has.
 const MAX_HOLD_MS = 250;
+const MAX_RENDER_AHEAD_MS = 100;
 const LATE_WINDOW = 100; // chunks (1 s) whose 95th percentile arrival bounds the target (one stall of the page must not move it)
 
 /** Per-packet stamps the page adds, wall-clock microseconds. */
@@ -59,6 +60,7 @@ export class AudioPlayer {
 	#mappedRunning = false; // whether it was mapped with the running output clock
 	readonly #videoOffsets = new Window(VIDEO_WINDOW); // ms: present perf time - pts
 	readonly #arrivals = new Window(LATE_WINDOW); // ms: arrival perf time + jitter - pts
+	readonly #renderAhead = new Window(LATE_WINDOW); // ms: see renderAheadMs
 	// Input pts in decode order. Why not AudioData.timestamp: Chromium's Opus decoder
 	// counts output samples from the first input's timestamp, so after any gap in the
 	// input (a join, a skipped group, a paused source) its timestamps run late for good.
@@ -143,6 +145,7 @@ export class AudioPlayer {
 	reset(): void {
 		this.#node?.port.postMessage({ type: "reset" });
 		this.#arrivals.clear();
+		this.#renderAhead.clear();
 		this.#videoOffsets.clear();
 		this.#targetMs = undefined;
 	}
@@ -162,25 +165,41 @@ export class AudioPlayer {
 		const now = wallUs();
 		this.onStamp?.(ptsUs, "decode", now);
 		this.#arrivals.push(performance.now() + JITTER_MS - ptsUs / 1000);
+		this.#renderAhead.push(this.renderAheadMs());
 		this.#retarget();
 		this.#node?.port.postMessage({ type: "chunk", start: Math.round((ptsUs * rate) / 1e6), data: samples }, [samples.buffer]);
 	}
 
 	/** The sync target's parts (ms, page time minus pts): for the stats and the tests. */
-	syncParts(): { videoMs?: number; arrivalMs?: number; targetMs?: number; offsetFrames?: number; contextMs: number } {
+	syncParts(): { videoMs?: number; arrivalMs?: number; aheadMs?: number; targetMs?: number; offsetFrames?: number; contextMs: number } {
 		return {
 			videoMs: this.#videoOffsets.percentile(VIDEO_QUANTILE),
 			arrivalMs: this.#arrivals.percentile(95),
+			aheadMs: this.#renderAhead.percentile(95),
 			targetMs: this.#targetMs,
 			offsetFrames: this.#offsetFrames,
 			contextMs: this.context.currentTime * 1000,
 		};
 	}
 
+	/** How far the worklet renders ahead of what is heard (ms): a sample must be in the
+	 * worklet this long before its time to be heard, on top of the jitter buffer. The
+	 * output timestamp says it (render clock minus the clock at the output); before
+	 * the context runs, the context's own estimate. */
+	renderAheadMs(): number {
+		const ts = this.context.getOutputTimestamp();
+		const estimate = (this.context.baseLatency + (this.context.outputLatency || 0)) * 1000;
+		if (!this.running || !ts.contextTime) return estimate;
+		const ahead = (this.context.currentTime - ts.contextTime) * 1000;
+		// A stale output timestamp (a stalled device) must not push the sound seconds late.
+		return Math.min(Math.max(ahead, 0), MAX_RENDER_AHEAD_MS);
+	}
+
 	/** Page time (ms) at which audio pts P should be heard, minus P. */
 	targetOffsetMs(): number | undefined {
-		const earliest = this.#arrivals.percentile(95);
-		if (earliest === undefined) return undefined;
+		const arrival = this.#arrivals.percentile(95);
+		if (arrival === undefined) return undefined;
+		const earliest = arrival + this.#renderAhead.percentile(95)!;
 		const video = this.#videoOffsets.percentile(VIDEO_QUANTILE);
 		if (video === undefined || video - earliest > MAX_HOLD_MS) return earliest;
 		return Math.max(video, earliest);
@@ -207,6 +226,13 @@ export class AudioPlayer {
 		this.#mappedRunning = running && !!ts.contextTime && !!ts.performanceTime;
 		this.#offsetFrames = offset;
 		this.#node?.port.postMessage({ type: "offset", offset });
+	}
+
+	/** How long a video frame with ``ptsUs``, decoded now, should wait for its sound to
+	 * come within SYNC_MS of it (undefined: do not wait: no sound playing, muted). */
+	videoWaitMs(ptsUs: number, syncMs: number): number | undefined {
+		if (this.muted || !this.running || this.#targetMs === undefined || this.#offsetFrames === undefined) return undefined;
+		return ptsUs / 1000 + this.#targetMs - performance.now() - syncMs;
 	}
 
 	/** Audio pts (ms) heard at page time ``perfMs``; undefined until audio plays. */

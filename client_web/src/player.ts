@@ -14,6 +14,7 @@ import { InputCapture, InputPublisher } from "./input";
 import { errorText, MediaSubscription } from "./media";
 import { Overlay } from "./overlay";
 import { Renderer } from "./renderer";
+import { SYNC_MS, VideoHold } from "./video_hold";
 import { FpsMeter, StageLatency, type Stats } from "./stats";
 import { InputToPhoton, TimingJoin } from "./timing";
 
@@ -92,10 +93,11 @@ function main(): void {
 		if (predictedFlags.length > PREDICTED_WINDOW) predictedFlags.shift();
 	};
 
+	const hold = new VideoHold((frame) => renderer.push(frame));
 	const decoder = new Decoder({
 		frame: (frame) => {
 			timing.stamp(frame.timestamp, "decode", wallUs());
-			renderer.push(frame);
+			hold.add(frame, audio && audioEnabled ? audio.videoWaitMs(frame.timestamp, SYNC_MS) : undefined);
 		},
 		error,
 	});
@@ -148,6 +150,9 @@ function main(): void {
 			bufferedMs: audio?.bufferedMs ?? 0,
 			underrunFrames: audio?.underrunFrames ?? 0,
 			sync: audio?.syncParts(),
+			// Video frames that waited for their sound (lip sync), and their mean wait.
+			videoHeld: hold.held,
+			videoHeldMeanMs: hold.held ? hold.heldMs / hold.held : 0,
 		},
 		errors: [...errors],
 	});
