@@ -83,6 +83,7 @@ class LiveStack:
         self.config = config
         self._audio = audio
         self._sound = sound
+        self._owned_sound: Any = None  # a PulseMonitor this stack made (source x11)
         self.broadcast = broadcast
         # A relay that checks tokens, as upcast up runs it: the session publishes with
         # its publisher token, the page sends inputs with the player's.
@@ -154,6 +155,10 @@ class LiveStack:
             gamepad=self.config.gamepad,
             audio=self._audio,
         )
+        if self._sound is None and self._audio and self.config.source == "x11":
+            from server.session.pulse_monitor import PulseMonitor
+
+            self._sound = self._owned_sound = PulseMonitor(self.stack.pulse_dir / "native")
         self.session = StreamingSession(
             settings,
             self.stack.ring_u,
@@ -182,6 +187,8 @@ class LiveStack:
                 loop.call_soon_threadsafe(stop.set)
         if self._thread is not None:
             self._thread.join(10.0)
+        if self._owned_sound is not None:
+            self._owned_sound.close()
         self.stack.stop()
         self.relay.stop()
         self._key_dir.cleanup()

@@ -41,6 +41,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     x11 = parser.add_argument_group("X11 source (--source x11: stream a real application)")
     add_x11_source_arguments(x11, size_flag="--size")
+    x11.add_argument(
+        "--pulse-dir",
+        type=Path,
+        default=None,
+        help="x11: run a PulseAudio server for the application's sound in this folder "
+        "(the session records its sink; upcast up passes it)",
+    )
 
 
 def _port(text: str) -> int:

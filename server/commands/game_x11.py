@@ -48,7 +48,13 @@ def run_x11(args: argparse.Namespace) -> int:
         signal.signal(sig, lambda *_: stop.set())
     size = Size.parse(args.size)
     try:
-        source = X11Source(size, command, display=args.x11_display, on_app_exit=args.app_exit)
+        source = X11Source(
+            size,
+            command,
+            display=args.x11_display,
+            on_app_exit=args.app_exit,
+            pulse_dir=args.pulse_dir,
+        )
     except (DisplayError, ApplicationError, OSError) as exc:
         log.error("X11 source: %s", exc)
         return SOURCE_FAILED_CODE

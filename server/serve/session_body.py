@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
     from server.serve.status_reporter import StatusReporter
+    from server.session.pulse_monitor import PulseMonitor
     from server.session.runner import StreamingSession
     from server.stack.local import LocalStack, SessionConfig
     from server.stream_config import StreamConfig
@@ -69,6 +70,7 @@ async def run_game_session(
 
     from server.frames.frame import Size
     from server.serve.status_reporter import StatusReporter
+    from server.session.pulse_monitor import PulseMonitor
     from server.session.runner import StreamingSession, StreamSettings
     from server.stack.local import LocalStack
     from upscalers import registry as upscaler_registry
@@ -78,6 +80,7 @@ async def run_game_session(
     ports = (plan.metrics_port + 1, plan.metrics_port + 2) if plan.metrics_port else (0, 0)
     stack = LocalStack(config, metrics_ports=ports)
     session_task: asyncio.Task[None] | None = None
+    sound: PulseMonitor | None = None
     try:
         await loop.run_in_executor(None, stack.start)
         await loop.run_in_executor(None, stack.wait_ready)
@@ -108,6 +111,9 @@ async def run_game_session(
                 config.upscaler, config.cache_policy
             ),
         )
+        if stream.audio and config.source == "x11":
+            # The application's own sound, from its session's PulseAudio sink.
+            sound = PulseMonitor(stack.pulse_dir / "native")
         session = StreamingSession(
             settings,
             stack.ring_u,
@@ -116,6 +122,7 @@ async def run_game_session(
             worker_control=stack.control_path,
             registry=registry,
             on_upscaler_set=stack.remember_upscaler,
+            sound=sound,
         )
         status = StatusReporter(session)
         session_task = asyncio.create_task(session.run(stop), name="session")
@@ -147,4 +154,6 @@ async def run_game_session(
         if session_task is not None:
             with contextlib.suppress(Exception):
                 await session_task
+        if sound is not None:
+            sound.close()
         stack.stop()

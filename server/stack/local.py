@@ -209,6 +209,8 @@ class LocalStack:
         self.ring_u_name = f"{config.name}-u"
         self.control_path = Path(tempfile.gettempdir()) / f"{config.name}.ctl"
         self.input_path = Path(tempfile.gettempdir()) / f"{config.name}.input"
+        # source x11: the application's PulseAudio server (socket ``native`` inside).
+        self.pulse_dir = Path(tempfile.gettempdir()) / f"{config.name}.pulse"
         self._game_duration_s = game_duration_s
         self.ring_r: FrameRing | None = None
         self.ring_u: FrameRing | None = None
@@ -244,7 +246,7 @@ class LocalStack:
             args += ["--app", c.app]
         if c.x11_display is not None:
             args += ["--x11-display", c.x11_display]
-        return args
+        return [*args, "--pulse-dir", str(self.pulse_dir)]
 
     def _game_args(self) -> list[str]:
         c = self.config

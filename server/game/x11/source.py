@@ -19,6 +19,7 @@ import logging
 import shlex
 import time
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Generic, Literal, TypeVar
 
 from server.frames.frame import Camera, FrameFlags, FrameMeta, RenderFrame, Size
@@ -30,6 +31,7 @@ from server.game.x11.capture import ScreenCapture
 from server.game.x11.display import VirtualDisplay
 from server.game.x11.errors import DisplayGone
 from server.game.x11.inject import InputInjector
+from server.game.x11.pulse import PulseServer
 
 log = logging.getLogger(__name__)
 
@@ -98,6 +100,7 @@ class X11Source:
         display: str | None = None,
         on_app_exit: AppExitPolicy = "stop",
         app_env: dict[str, str] | None = None,
+        pulse_dir: Path | None = None,
     ) -> None:
         """``display``: an existing X server (":0") to capture instead of a new Xvfb;
         ``command``: the application to start on it (None: capture what is there)."""
@@ -110,6 +113,8 @@ class X11Source:
         self.display = display
         self._command = list(command) if command else None
         self._app_env = app_env or {}
+        # The program's sound goes to a PulseAudio server of this session (pulse.py).
+        self.pulse = PulseServer.start(pulse_dir) if pulse_dir is not None else None
         self.app: Application | None = None
         self.exit_code: int | None = None
         self._restarts: list[float] = []
@@ -130,7 +135,8 @@ class X11Source:
     @property
     def environment(self) -> dict[str, str]:
         """The application's environment: DISPLAY, and SDL sound off unless asked for."""
-        env = {"SDL_AUDIODRIVER": "dummy", **self._app_env}
+        sound = self.pulse.app_env() if self.pulse is not None else {"SDL_AUDIODRIVER": "dummy"}
+        env = {**sound, **self._app_env}
         if self._virtual is not None:
             return self._virtual.env(env)
         import os
@@ -288,3 +294,7 @@ class X11Source:
         if self._virtual is not None:
             self._virtual.close()
             self._virtual = None
+        if getattr(self, "pulse", None) is not None:
+            assert self.pulse is not None
+            self.pulse.close()
+            self.pulse = None
