@@ -1,0 +1,141 @@
+"""Sound with packets missing (issue 24's hard case): no click storm, no drift.
+
+The session drops Opus packets before it publishes them: 5 % at random and a burst
+of 5 (50 ms) every second, what a viewer behind a lossy link gets once the relay has
+skipped what could not arrive. Measured against the same page before the loss:
+- the tone stays the loudest thing in (nearly) every spectrum;
+- the broadband energy around it (what clicks are made of) rises by a bounded amount:
+  each gap is faded out and in over 2.7 ms instead of cut;
+- the sound does not drift: capture-to-heard latency after a few seconds of loss is
+  where it was, as playback is tied to the output clock plus one offset.
+"""
+
+from __future__ import annotations
+
+import json
+import random
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+import pytest
+
+from server.bench.latency import LiveStack
+from server.game.sounds import ToneSource
+from server.session.audio_capture import CapturedAudio
+from server.stack.local import SessionConfig
+from tests.e2e.conftest import DISPLAY, FPS, RENDER, needs, open_player, stats
+
+pytestmark = [*needs("index.html"), pytest.mark.timeout(180)]
+
+TONE_HZ = 880.0
+
+# Eight spectra 200 ms apart: the loudest bin's frequency, and the tone's power
+# against everything more than 20 bins (117 Hz) away from it, in dB.
+SPECTRA = """async (hz) => {
+    const out = window.upcast.audioOutput();
+    const analyser = out.context.createAnalyser();
+    analyser.fftSize = 8192;
+    analyser.smoothingTimeConstant = 0;
+    out.connect(analyser);
+    const bin = Math.round(hz * analyser.fftSize / out.context.sampleRate);
+    const reads = [];
+    for (let k = 0; k < 8; k++) {
+        await new Promise((r) => setTimeout(r, 200));
+        const db = new Float32Array(analyser.frequencyBinCount);
+        analyser.getFloatFrequencyData(db);
+        let best = 0, tone = 0, rest = 0;
+        for (let i = 1; i < db.length; i++) {
+            if (db[i] > db[best]) best = i;
+            const p = Math.pow(10, db[i] / 10);
+            if (Math.abs(i - bin) <= 4) tone += p;
+            else if (Math.abs(i - bin) > 20) rest += p;
+        }
+        const hz = best * out.context.sampleRate / analyser.fftSize;
+        reads.push([hz, 10 * Math.log10(tone / rest)]);
+    }
+    out.disconnect(analyser);
+    return reads;
+}"""
+
+
+class Lossy:
+    """Wraps the session's audio publish: drops packets while ``on``."""
+
+    def __init__(self, publish: Any, seed: int = 7) -> None:
+        self._publish = publish
+        self._random = random.Random(seed)
+        self.on = False
+        self.sent = 0
+        self.dropped = 0
+
+    def __call__(self, captured: CapturedAudio) -> None:
+        if self.on:
+            burst = self.sent % 100 < 5  # 5 packets of every 100 (50 ms a second)
+            if burst or self._random.random() < 0.05:
+                self.dropped += 1
+                self.sent += 1
+                return
+        self.sent += 1
+        self._publish(captured)
+
+
+@pytest.fixture(scope="module")
+def lossy_stack() -> Iterator[tuple[LiveStack, Lossy]]:
+    config = SessionConfig(scene="default", render_size=RENDER, display_size=DISPLAY, fps=FPS)
+    with LiveStack(config, audio=True, sound=ToneSource(TONE_HZ)) as live:
+        session = live.session
+        assert session is not None
+        lossy = Lossy(session.broadcast.publish_audio)
+        session.broadcast.publish_audio = lossy  # type: ignore[method-assign]
+        yield live, lossy
+
+
+def _latency_p50(page: Any) -> float:
+    return float(stats(page)["latency"]["audio_total"]["p50"])
+
+
+def test_lost_packets_make_no_click_storm_and_no_drift(
+    lossy_stack: tuple[LiveStack, Lossy], browser: Any
+) -> None:
+    live, lossy = lossy_stack
+    page = open_player(browser, live.player_url(overlay="0"), frames=5)
+    try:
+        page.click("#audio-mute")
+        page.wait_for_function(
+            "() => window.upcast.stats().audio.running && window.upcast.stats().audio.decoded > 50",
+            timeout=20_000,
+        )
+        # The latency window holds 6 s of packets: let the start-up leave it.
+        page.wait_for_timeout(6500)
+        clean = page.evaluate(SPECTRA, TONE_HZ)
+        latency_before = _latency_p50(page)
+        lossy.on = True
+        page.wait_for_timeout(6000)  # loss for a while: any drift would accumulate
+        lossy_reads = page.evaluate(SPECTRA, TONE_HZ)
+        latency_after = _latency_p50(page)
+        lossy.on = False
+    finally:
+        page.close()
+    ratio_clean = float(np.median([r for _, r in clean]))
+    ratio_lossy = float(np.median([r for _, r in lossy_reads]))
+    summary = {
+        "dropped": lossy.dropped,
+        "sent": lossy.sent,
+        "tone_to_rest_db": {"clean": ratio_clean, "lossy": ratio_lossy},
+        "capture_to_heard_p50_ms": {"before": latency_before, "after": latency_after},
+    }
+    print("audio loss:", json.dumps(summary), json.dumps(lossy_reads))
+    assert lossy.dropped > 50
+    # The tone is still the loudest in nearly every spectrum.
+    assert sum(abs(hz - TONE_HZ) < 12 for hz, _ in lossy_reads) >= 7, lossy_reads
+    # The tone stays well above the broadband rest. For scale, the same loss pattern on
+    # a pure 880 Hz tone computed offline (8192-point Blackman, like the analyser):
+    # hard cuts 28.6 dB median (13.8 worst), 2.7 ms fades 33.4 (18.9); measured here
+    # 27.7-39.7 median in 3 runs (worst single spectrum 12.1): Opus' own transients
+    # after a missing packet (no PLC in WebCodecs) take back much of what the fades
+    # save. A click storm (a cut per packet) is far below.
+    assert ratio_lossy > 15.0, summary
+    # No drift: the same latency, within a jitter buffer's worth.
+    assert abs(latency_after - latency_before) < 20.0, summary
+    live.check()
