@@ -47,6 +47,7 @@ from server.bench.adversary_types import (
 )
 from server.moq.errors import ErrorCode
 from server.quic.certs import CertBundle, generate_cert
+from server.quic.connection import IDLE_TIMEOUT_S
 from server.quic.guard import GuardLimits
 from server.relay.relay import Relay
 from tests.relay_harness import Publisher, connected_viewers, running_relay, until
@@ -509,7 +510,11 @@ def test_viewers_that_never_read_are_skipped_and_survive(cert: CertBundle) -> No
 
 def test_connect_storm_leaves_nothing_behind(cert: CertBundle) -> None:
     async def drained(relay: Relay, result: AttackResult) -> None:
-        await until(lambda: len(relay.links) == 1 + GOOD_VIEWERS, 3.0)
+        # Each storm client sends one CONNECTION_CLOSE and is gone. Under the storm a
+        # loopback datagram can be dropped (a full socket buffer: one fresh-clone CI
+        # run), and then only the relay's idle timeout frees that link, as for a
+        # vanished client: nothing may be left once it has passed.
+        await until(lambda: len(relay.links) == 1 + GOOD_VIEWERS, IDLE_TIMEOUT_S + 2.0, step=0.1)
 
     outcome = scenario_test(cert, "connect_storm", after=drained)
     assert_common(outcome)
