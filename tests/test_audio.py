@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import itertools
 import json
-import os
-import subprocess
 import threading
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,7 +29,7 @@ from server.moq.wire import Reader
 from server.session.audio_capture import HOLD_BACK_NS, AudioCapture, AudioStamps, CapturedAudio
 from server.session.broadcast import AUDIO_GROUP_FRAMES, TRACKS
 from server.session.timing_track import decode_timing
-from tests.test_encode_catalog import CLIENT_MODULES, HANG_MISSING, HANG_REASON
+from tests.test_encode_catalog import HANG_MISSING, HANG_REASON, run_with_hang
 from tests.test_session_broadcast import Harness
 
 FRAME_US = FRAME_SAMPLES * 1_000_000 // SAMPLE_RATE
@@ -305,19 +303,7 @@ def test_hang_reads_our_audio_catalog_and_frames(tmp_path: Path) -> None:
     (tmp_path / "catalog.json").write_bytes(catalog.to_json())
     packet = OpusEncoder().encode(ToneSource(440.0).render(FRAME_SAMPLES), 48_000 * 5)[0]
     (tmp_path / "frame.bin").write_bytes(legacy_frame(packet))
-    src = tmp_path / "check.mjs"
-    src.write_text(_HANG_AUDIO_JS.replace("HANG", str(CLIENT_MODULES / "@moq" / "hang")))
-    bundle = tmp_path / "bundle.mjs"
-    subprocess.run(
-        [str(CLIENT_MODULES / ".bin" / "esbuild"), str(src), "--bundle", "--platform=node",
-         "--format=esm", f"--outfile={bundle}", "--log-level=error"],
-        check=True, env={**os.environ, "NODE_PATH": str(CLIENT_MODULES)},
-    )  # fmt: skip
-    result = subprocess.run(
-        ["node", str(bundle), str(tmp_path / "catalog.json"), str(tmp_path / "frame.bin")],
-        check=True, capture_output=True, text=True,
-    )  # fmt: skip
-    out = json.loads(result.stdout)
+    out = run_with_hang(tmp_path, _HANG_AUDIO_JS, tmp_path / "catalog.json", tmp_path / "frame.bin")
     rendition = out["audio"]["renditions"]["audio"]
     assert rendition["codec"] == "opus" and rendition["container"] == {"kind": "legacy"}
     assert (rendition["sampleRate"], rendition["numberOfChannels"]) == (48_000, 1)

@@ -85,6 +85,23 @@ def test_field_names_exist_in_hang_schema() -> None:
     assert set(RENDITION_TYPES) <= declared
 
 
+def run_with_hang(tmp_path: Path, script: str, *args: Path) -> Any:
+    """Bundle ``script`` (its ``HANG`` standing for the installed @moq/hang) for node
+    with the client's esbuild, run it on ``args`` and return the JSON it prints."""
+    src = tmp_path / "check.mjs"
+    src.write_text(script.replace("HANG", str(CLIENT_MODULES / "@moq" / "hang")))
+    bundle = tmp_path / "bundle.mjs"
+    subprocess.run(
+        [str(CLIENT_MODULES / ".bin" / "esbuild"), str(src), "--bundle", "--platform=node",
+         "--format=esm", f"--outfile={bundle}", "--log-level=error"],
+        check=True, env={**os.environ, "NODE_PATH": str(CLIENT_MODULES)},
+    )  # fmt: skip
+    result = subprocess.run(
+        ["node", str(bundle), *map(str, args)], check=True, capture_output=True, text=True
+    )
+    return json.loads(result.stdout)
+
+
 _HANG_CHECK_JS = """
 import { readFileSync } from "node:fs";
 import * as Catalog from "HANG/catalog/index.js";
@@ -109,19 +126,7 @@ def test_hang_itself_accepts_catalog_and_fragments(tmp_path: Path) -> None:
         frame = enc.encode(np.full((180, 320, 3), 60 * i, np.uint8), i, 5_000_000_000 + i * 33_333)
         frags.append(tmp_path / f"frag{i}.m4s")
         frags[-1].write_bytes(frame.fragment)
-    src = tmp_path / "check.mjs"
-    src.write_text(_HANG_CHECK_JS.replace("HANG", str(CLIENT_MODULES / "@moq" / "hang")))
-    bundle = tmp_path / "bundle.mjs"
-    subprocess.run(
-        [str(CLIENT_MODULES / ".bin" / "esbuild"), str(src), "--bundle", "--platform=node",
-         "--format=esm", f"--outfile={bundle}", "--log-level=error"],
-        check=True, env={**os.environ, "NODE_PATH": str(CLIENT_MODULES)},
-    )  # fmt: skip
-    result = subprocess.run(
-        ["node", str(bundle), str(tmp_path / "catalog.json"), *map(str, frags)],
-        check=True, capture_output=True, text=True,
-    )  # fmt: skip
-    out = json.loads(result.stdout)
+    out = run_with_hang(tmp_path, _HANG_CHECK_JS, tmp_path / "catalog.json", *frags)
     assert out["codec"] == enc.codec_string()
     assert out["timescale"] == 1_000_000
     assert out["avcc"] == len(enc.avc.avcc())
