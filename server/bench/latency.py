@@ -92,7 +92,7 @@ class LiveStack:
         generate_key(key_path)
         self.tokens = session_tokens(load_key(key_path), broadcast)
         self.relay = RelayProcess("::", port, web_root, auth_key=key_path)
-        self.stack = LocalStack(config)
+        self.stack = LocalStack(config, app_sound=audio)
         self.endpoint: RelayEndpoint | None = None
         self.session: StreamingSession | None = None
         self._bitrate = bitrate

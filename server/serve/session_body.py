@@ -78,7 +78,7 @@ async def run_game_session(
     loop = asyncio.get_running_loop()
     config, stream = plan.config, plan.stream
     ports = (plan.metrics_port + 1, plan.metrics_port + 2) if plan.metrics_port else (0, 0)
-    stack = LocalStack(config, metrics_ports=ports)
+    stack = LocalStack(config, metrics_ports=ports, app_sound=stream.audio)
     session_task: asyncio.Task[None] | None = None
     sound: PulseMonitor | None = None
     try:

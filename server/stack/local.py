@@ -201,8 +201,11 @@ class LocalStack:
         *,
         game_duration_s: float | None = None,
         metrics_ports: tuple[int, int] = (0, 0),
+        app_sound: bool = False,
     ) -> None:
-        """``metrics_ports``: the game's and the worker's Prometheus ports (0: off)."""
+        """``metrics_ports``: the game's and the worker's Prometheus ports (0: off);
+        ``app_sound``: source x11 gets a PulseAudio server for the program's sound (only
+        worth running when the session streams audio)."""
         self.config = config
         self.game_metrics_port, self.worker_metrics_port = metrics_ports
         self.ring_r_name = f"{config.name}-r"
@@ -211,6 +214,7 @@ class LocalStack:
         self.input_path = Path(tempfile.gettempdir()) / f"{config.name}.input"
         # source x11: the application's PulseAudio server (socket ``native`` inside).
         self.pulse_dir = Path(tempfile.gettempdir()) / f"{config.name}.pulse"
+        self.app_sound = app_sound
         self._game_duration_s = game_duration_s
         self.ring_r: FrameRing | None = None
         self.ring_u: FrameRing | None = None
@@ -246,7 +250,7 @@ class LocalStack:
             args += ["--app", c.app]
         if c.x11_display is not None:
             args += ["--x11-display", c.x11_display]
-        return [*args, "--pulse-dir", str(self.pulse_dir)]
+        return [*args, "--pulse-dir", str(self.pulse_dir)] if self.app_sound else args
 
     def _game_args(self) -> list[str]:
         c = self.config

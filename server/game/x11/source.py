@@ -16,6 +16,7 @@ dies at start does not spin).
 from __future__ import annotations
 
 import logging
+import os
 import shlex
 import time
 from collections.abc import Sequence
@@ -139,8 +140,6 @@ class X11Source:
         env = {**sound, **self._app_env}
         if self._virtual is not None:
             return self._virtual.env(env)
-        import os
-
         return {**os.environ, **env, "DISPLAY": self.display}
 
     def _start_app(self) -> None:
