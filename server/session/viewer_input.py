@@ -21,6 +21,7 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 
 from server.game.input import MAX_LOOK_DEG, InputMessage
+from server.session.feedback import FeedbackFields
 from server.session.session_control import SessionControl
 
 MAX_MESSAGE_BYTES = 2048
@@ -85,6 +86,12 @@ class KeyframeMessage(_Base):
     type: Literal["keyframe"]
 
 
+class FeedbackMessage(_Base, FeedbackFields):
+    """What the viewer received lately (server/session/feedback.py)."""
+
+    type: Literal["feedback"]
+
+
 _Unit = Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)]
 _Axis = Annotated[float, Field(ge=-1, le=1, allow_inf_nan=False)]
 _ButtonIndex = Annotated[int, Field(strict=True, ge=0, lt=MAX_GAMEPAD_BUTTONS)]
@@ -111,7 +118,13 @@ class GamepadMessage(_Base):
 
 
 ViewerMessage = Annotated[
-    LookMessage | KeysMessage | ControlMessage | KeyframeMessage | PointerMessage | GamepadMessage,
+    LookMessage
+    | KeysMessage
+    | ControlMessage
+    | KeyframeMessage
+    | PointerMessage
+    | GamepadMessage
+    | FeedbackMessage,
     Field(discriminator="type"),
 ]
 _VIEWER_MESSAGE: TypeAdapter[ViewerMessage] = TypeAdapter(ViewerMessage)
