@@ -4,7 +4,20 @@ Tuned for latency the way low-latency game streamers (Sunshine, Selkies) tune
 x264: ``zerolatency`` (no frame threads, no lookahead, no B-frames), a VBV one
 frame deep (``vbv-bufsize = bitrate / fps``) so no frame can take more than
 about one frame interval to transmit, scene cuts off (keyframes only when we
-want a new MoQ group), periodic IDRs and IDRs on demand.
+want a new MoQ group), IDRs on demand, and either periodic IDRs or periodic
+intra refresh.
+
+Intra refresh (``intra_refresh=True``) sweeps a column of intra blocks across
+the picture once per ``gop_seconds`` instead of sending a whole IDR: every frame
+costs about the same, so a lossy or narrow link sees no keyframe spike, and a
+decoder that lost something is whole again after one sweep. IDRs then come only
+at the start and on demand (a new subscriber, a player that lost a group).
+
+The bitrate can change while streaming (:meth:`VideoEncoder.set_bitrate`, for
+the session's rate control): libavcodec's libx264 wrapper reconfigures x264 when
+the context's ``bit_rate`` changes between frames. The VBV ceiling stays the one
+the encoder opened with (``bitrate``), so the rate can go down from it and back
+up to it, not above.
 
 The fragment of a frame is returned by the call that encodes that frame: x264
 in this mode returns every access unit immediately, and the fMP4 boxes are
@@ -29,12 +42,22 @@ from av.video.codeccontext import VideoCodecContext
 from av.video.frame import PictureType, VideoFrame
 from av.video.reformatter import ColorRange, Colorspace, VideoReformatter
 
-from server.media.cmaf import AvcConfig, annexb_to_avcc, init_segment, media_fragment
+from server.media.cmaf import (
+    AvcConfig,
+    annexb_to_avcc,
+    init_segment,
+    media_fragment,
+    split_annexb,
+)
 
 TIMESCALE = 1_000_000  # fMP4 and encoder clock in microseconds, so pts_us is written as-is
 
 # Reference point for the default bitrate: 6 Mbit/s at 1280x720, 60 fps.
 _REFERENCE_BITS_PER_PIXEL_FRAME = 6_000_000 / (1280 * 720 * 60)
+
+# The lowest rate set_bitrate goes to: below this x264 at its highest QP still
+# overshoots at 360p, and the picture is no longer worth sending.
+MIN_BITRATE = 100_000
 
 # libavutil AVColorSpace / primaries / transfer / range codes for BT.709 limited range.
 _BT709 = 1
@@ -55,11 +78,12 @@ class EncoderConfig:
     fps: float = 60.0
     bitrate: int | None = None  # bits/s; None: default_bitrate(width, height, fps)
     preset: str = "ultrafast"
-    gop_seconds: float = 2.0  # periodic IDR interval
+    gop_seconds: float = 2.0  # periodic IDR interval (with intra_refresh: the sweep period)
     vbv_frames: float = 1.0  # VBV buffer in frame intervals (1 = one-frame VBV)
     keyframe_min_interval_ms: float = 250.0  # no forced IDR sooner than this after any IDR
     threads: int = 0  # x264 threads, 0 = x264 chooses (sliced threads under zerolatency)
     convert_threads: int = 1  # swscale slice threads for RGB->YUV (the game shares the cores)
+    intra_refresh: bool = False  # refresh sweeps instead of periodic IDRs (see the module doc)
 
     def __post_init__(self) -> None:
         for name in ("width", "height"):
@@ -148,6 +172,9 @@ class VideoEncoder:
         self._last_pts_us: int | None = None
         self._keyframe_requested = False
         self._last_keyframe_pts_us: int | None = None
+        self._bitrate = config.target_bitrate
+        self._pending_bitrate: int | None = None
+        self.bitrate_changes = 0
         self.frames_in = 0
         self.fragments_out = 0
         self.forced_keyframes = 0
@@ -167,6 +194,22 @@ class VideoEncoder:
         """
         self._keyframe_requested = True
 
+    @property
+    def bitrate(self) -> int:
+        """The bitrate x264 aims at now (bit/s), after any :meth:`set_bitrate` applied."""
+        return self._pending_bitrate or self._bitrate
+
+    def set_bitrate(self, bits_per_second: int) -> int:
+        """Aim at a new bitrate from the next frame on; returns the rate that will be
+        used: clamped to ``MIN_BITRATE`` .. the configured bitrate (the VBV ceiling).
+
+        Safe to call from the event loop while another thread encodes: the encoding
+        thread applies it before its next frame.
+        """
+        rate = max(MIN_BITRATE, min(self.config.target_bitrate, int(bits_per_second)))
+        self._pending_bitrate = rate
+        return rate
+
     def encode(self, rgb: npt.NDArray[np.uint8], frame_id: int, pts_us: int) -> EncodedFrame:
         """Encode one (H, W, 3) uint8 RGB frame; ``pts_us`` must increase.
 
@@ -184,6 +227,14 @@ class VideoEncoder:
         self._last_pts_us = pts_us
         self.frames_in += 1
 
+        pending = self._pending_bitrate
+        if pending is not None:
+            self._pending_bitrate = None
+            if pending != self._bitrate:
+                self._codec.bit_rate = pending  # libx264 reconfigures before this frame
+                self._bitrate = pending
+                self.bitrate_changes += 1
+
         t_convert = time.perf_counter_ns()
         yuv = self._to_yuv(rgb)
         t_x264 = time.perf_counter_ns()
@@ -197,7 +248,11 @@ class VideoEncoder:
         if len(packets) != 1:
             raise RuntimeError(f"x264 returned {len(packets)} packets for one frame (delay?)")
         packet = packets[0]
-        keyframe = packet.is_keyframe
+        annexb = bytes(packet)
+        # An IDR, not the packet's key flag: under intra refresh x264 flags the first
+        # frame of each sweep as a key (a recovery point), which a decoder cannot
+        # start from; only an IDR may open a MoQ group.
+        keyframe = packet.is_keyframe and _has_idr(annexb)
         if keyframe:
             # Any IDR serves a pending request and restarts the cooldown.
             self._keyframe_requested = False
@@ -207,7 +262,7 @@ class VideoEncoder:
 
         self._sequence += 1
         fragment = media_fragment(
-            self._sequence, pts_us, cfg.frame_duration_us, annexb_to_avcc(bytes(packet)), keyframe
+            self._sequence, pts_us, cfg.frame_duration_us, annexb_to_avcc(annexb), keyframe
         )
         self.fragments_out += 1
         end = time.perf_counter_ns()
@@ -249,6 +304,13 @@ class VideoEncoder:
         )
 
 
+_NAL_IDR = 5
+
+
+def _has_idr(annexb: bytes) -> bool:
+    return any(nal and nal[0] & 0x1F == _NAL_IDR for nal in split_annexb(annexb))
+
+
 def _open_x264(cfg: EncoderConfig) -> VideoCodecContext:
     codec = av.CodecContext.create("libx264", "w")
     codec.width = cfg.width
@@ -263,22 +325,26 @@ def _open_x264(cfg: EncoderConfig) -> VideoCodecContext:
     codec.color_primaries = _BT709
     codec.color_trc = _BT709
     codec.color_range = _RANGE_MPEG
-    kbit = max(1, cfg.target_bitrate // 1000)
-    vbv_kbit = max(1, round(kbit * cfg.vbv_frames / cfg.fps))
-    params = {
+    # The rate through the context (not x264-params): libavcodec compares the
+    # context's bit_rate with x264's before each frame and reconfigures x264 when
+    # it changed, which is how set_bitrate works while streaming.
+    codec.bit_rate = cfg.target_bitrate
+    vbv_bits = max(1000, round(cfg.target_bitrate * cfg.vbv_frames / cfg.fps))
+    params: dict[str, int] = {
         "keyint": cfg.gop_frames,
         "scenecut": 0,  # IDRs only when we decide: each one starts a MoQ group
         "bframes": 0,
         "rc-lookahead": 0,
         "sync-lookahead": 0,
-        "bitrate": kbit,
-        "vbv-maxrate": kbit,
-        "vbv-bufsize": vbv_kbit,
     }
+    if cfg.intra_refresh:
+        params["intra-refresh"] = 1  # keyint is then the sweep's period, not an IDR's
     codec.options = {
         "preset": cfg.preset,
         "tune": "zerolatency",
         "forced-idr": "1",  # pict_type I -> IDR, not a recovery-point I-frame
+        "maxrate": str(cfg.target_bitrate),
+        "bufsize": str(vbv_bits),
         "x264-params": ":".join(f"{k}={v}" for k, v in params.items()),
     }
     codec.open()
