@@ -65,6 +65,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="the viewers' relay token (default: none, for a relay with public viewers)",
     )
+    parser.add_argument(
+        "--feedback",
+        action="store_true",
+        help="each viewer publishes <broadcast>/input/<id> and sends a feedback message every"
+        " 250 ms, as the browser does (--token must allow publishing input: a player token)",
+    )
+    parser.add_argument(
+        "--player", action="store_true", help="with --feedback: viewer 0 reports as the player"
+    )
     group = parser.add_argument_group("synthetic publisher (instead of a game session)")
     group.add_argument(
         "--synthetic-publisher",
@@ -97,6 +106,8 @@ def config_from(args: argparse.Namespace) -> LoadConfig:
         max_p95_ms=args.max_p95_ms,
         cert_hash_hex=args.cert_hash,
         token=args.token,
+        feedback=args.feedback or args.player,
+        player=args.player,
     )
 
 

@@ -60,6 +60,8 @@ class LoadConfig:
     max_p95_ms: float = 50.0
     cert_hash_hex: str | None = None
     token: str | None = None  # the viewers' relay token (?jwt=); None: anonymous viewers
+    feedback: bool = False  # viewers publish <broadcast>/input/<id> and send feedback
+    player: bool = False  # ... viewer 0 as the player
 
     def problem(self) -> str | None:
         """What is wrong with the settings, naming the option; None when usable."""

@@ -127,7 +127,13 @@ async def run_load(
     if note is not None:
         notes.append(note)
     viewer_config = ViewerConfig(
-        config.relay_url, config.broadcast, cert, config.connect_timeout_s, config.token
+        config.relay_url,
+        config.broadcast,
+        cert,
+        config.connect_timeout_s,
+        config.token,
+        feedback=config.feedback,
+        player=config.player,
     )
     board: ProgressBoard | None = None
 

@@ -8,8 +8,12 @@ relay's, not ours. Fragments are read with the general CMAF reader, so a stream
 from another publisher (moq-rs's CMAF importer, FFmpeg) is measured too: its
 init segment (the catalog's ``container.init``) gives the timescale and trex
 defaults; without a timing track, loss and latency come from the media clock
-(``viewer_stats``). ``run_viewers`` drives a group of viewers in one event loop
-along a RunPlan and reports progress once a second.
+(``viewer_stats``). Every viewer counts frames lost, groups skipped and freezes as the
+browser does (``DeliveryCounters``); with ``feedback`` it also publishes its own
+input broadcast and reports them to the session every 250 ms, as the page does
+(``feedback_sender``), one viewer marked as the player if asked. ``run_viewers``
+drives a group of viewers in one event loop along a RunPlan and reports progress
+once a second.
 """
 
 from __future__ import annotations
@@ -32,6 +36,7 @@ from server.moq.events import (
     AnnounceReceived,
     Event,
     FrameReceived,
+    GroupClosed,
     GroupOpened,
     SessionError,
     SubscribeClosed,
@@ -39,7 +44,9 @@ from server.moq.events import (
 from server.moq.session import SessionClosedError
 from server.quic.client import WtConnectError
 from server.quic.moq_link import MoqLink, connect_moq
+from server.session.feedback import FEEDBACK_INTERVAL_MS
 
+from .feedback_sender import FeedbackCounts, FeedbackSender
 from .plan import RunPlan
 from .viewer_stats import ViewerStats
 
@@ -58,6 +65,10 @@ class ViewerConfig:
     cert_hash_hex: str | None
     connect_timeout_s: float
     token: str | None = None
+    # Publish <broadcast>/input/<id> and send feedback every 250 ms (the token must
+    # allow publishing there, as the player's does); ``player``: viewer 0 is the player.
+    feedback: bool = False
+    player: bool = False
 
 
 @dataclass(frozen=True)
@@ -92,6 +103,9 @@ class LoadViewer:
         self._defaults: dict[int, TrackDefaults] = {}
         self._timescale = 1_000_000
         self._closing = False
+        self.feedback: FeedbackSender | None = None
+        if config.feedback:
+            self.feedback = FeedbackSender(config.broadcast, player=config.player and index == 0)
 
     async def connect(self) -> None:
         self.stats.connect_started_s = start = time.monotonic()
@@ -115,6 +129,8 @@ class LoadViewer:
             self.close()
             return
         try:
+            if self.feedback is not None:
+                self.feedback.publish(link.moq)
             link.moq.request_announces("")
         except SessionClosedError:
             return
@@ -129,6 +145,22 @@ class LoadViewer:
             link.wt.close(0, "load test over")
         self.stats.drop_pending()
 
+    def send_feedback(self) -> None:
+        """One feedback message (if this viewer reports and the session subscribed)."""
+        link, sender = self.link, self.feedback
+        if link is None or sender is None or link.closed:
+            return
+        d = self.stats.delivery
+        counts = FeedbackCounts(
+            bytes=self.stats.bytes_total,
+            lost=d.lost,
+            skipped=d.skipped,
+            freezes=d.freezes,
+            freeze_ms=d.freeze_ms,
+        )
+        if sender.send(link.moq, counts):
+            link.flush()
+
     # -- events --------------------------------------------------------------------
 
     def _on_closed(self, link: MoqLink, reason: str) -> None:
@@ -137,13 +169,19 @@ class LoadViewer:
             self.stats.error = self.stats.error or f"disconnected: {reason}"
 
     def _on_events(self, link: MoqLink, events: list[Event]) -> None:
+        if self.feedback is not None:
+            self.feedback.on_events(link.moq, events)
         for event in events:
             if isinstance(event, FrameReceived):
                 self._on_frame(link, event)
             elif isinstance(event, GroupOpened):
                 track = self._tracks.get(event.subscription_id)
                 if track is not None and track == self._video_track:
-                    self.stats.on_group(time.monotonic())
+                    self.stats.on_group(time.monotonic(), event.sequence)
+            elif isinstance(event, GroupClosed):
+                track = self._tracks.get(event.subscription_id)
+                if not event.complete and track is not None and track == self._video_track:
+                    self.stats.on_group_reset(time.monotonic())
             elif isinstance(event, AnnounceReceived):
                 if event.path.strip("/") == self.config.broadcast.strip("/") and event.active:
                     self._subscribe(link, CATALOG_TRACK)
@@ -170,13 +208,19 @@ class LoadViewer:
             wall_us = time.time_ns() // 1000
             pts: int | None = None
             duration: int | None = None
+            sequence: int | None = None
             try:
                 info = parse_fragment(event.payload, self._defaults)
                 pts = info.decode_time * 1_000_000 // self._timescale
                 duration = sum(s.duration for s in info.samples) * 1_000_000 // self._timescale
+                sequence = info.sequence
             except (ValueError, struct.error):
                 self.stats.bad_fragments += 1
-            self.stats.on_video(pts, len(event.payload), now, wall_us, duration_us=duration)
+            self.stats.on_video(
+                pts, len(event.payload), now, wall_us, duration_us=duration, sequence=sequence
+            )
+            if self.feedback is not None and pts is not None:
+                self.feedback.note_frame(pts, now * 1000.0)
         elif track == TIMING_TRACK:
             try:
                 record = json.loads(event.payload)
@@ -300,7 +344,14 @@ async def run_viewers(
             await asyncio.sleep(PROGRESS_INTERVAL_S)
             sink(reporter.snapshot())
 
+    async def feedback_loop() -> None:
+        while True:
+            await asyncio.sleep(FEEDBACK_INTERVAL_MS / 1000.0)
+            for viewer in viewers:
+                viewer.send_feedback()
+
     reporting = asyncio.create_task(report_loop())
+    feedback = asyncio.create_task(feedback_loop()) if config.feedback else None
     try:
         await _sleep_until(plan.window_start)
         cpu_start, wall_start = _cpu_seconds(), time.monotonic()
@@ -309,11 +360,14 @@ async def run_viewers(
         await _sleep_until(plan.stop)
     finally:
         reporting.cancel()
+        if feedback is not None:
+            feedback.cancel()
         for viewer, task in zip(viewers, connects, strict=True):
             if not task.done():
                 task.cancel()
                 viewer.stats.error = viewer.stats.error or "connect did not finish in time"
-        await asyncio.gather(*connects, reporting, return_exceptions=True)
+        loops = [reporting] if feedback is None else [reporting, feedback]
+        await asyncio.gather(*connects, *loops, return_exceptions=True)
         for viewer in viewers:
             viewer.close()
     sink(reporter.snapshot())

@@ -24,6 +24,12 @@ minus decode time, less the smallest such difference in the window, so the frame
 that came fastest counts 0 ms and the others show how much later than it they
 came (what a player's jitter buffer must hold; the constant part of the delay,
 publisher to the fastest frame, is not visible without the publisher's clock).
+
+The honest counters (``DeliveryCounters``) need neither clock nor timing track,
+only what arrives, as the browser counts them: frames lost are gaps in the CMAF
+fragments' ``mfhd`` sequence numbers, groups skipped are gaps in the moq-lite
+group sequence plus groups the relay reset before their end, and a freeze is
+more than ``FREEZE_MS`` between two received frames.
 """
 
 from __future__ import annotations
@@ -34,8 +40,105 @@ from typing import Any
 
 import numpy as np
 
+from server.session.feedback import FREEZE_MS
+
 # Frames whose timing record never arrives are forgotten after this many newer ones.
 MAX_PENDING = 256
+# Each group is its own QUIC stream, so the last fragments of one group may arrive after
+# the first of the next: a sequence gap is a loss only once this many newer ones came.
+REORDER_FRAGMENTS = 16
+# A sequence number this far below the highest seen: the publisher numbers afresh (a new
+# encoder after a resize, a restarted session), not a late fragment.
+RESTART_BELOW = 1024
+MAX_MISSING = 4096  # gaps longer than this are counted at once, not remembered one by one
+
+
+@dataclass
+class DeliveryCounters:
+    """Frames lost, groups skipped or reset and freezes, from what arrives.
+
+    Fed every event; ``counting`` says whether it adds to the figures (a window's
+    counters see the events before the window too, so a gap that ends inside it is
+    measured from the frame before)."""
+
+    lost: int = 0
+    skipped_groups: int = 0  # gaps in the group sequence
+    reset_groups: int = 0  # groups reset by the relay (or publisher) before their end
+    freezes: int = 0
+    freeze_ms: float = 0.0
+    longest_freeze_ms: float = 0.0
+    _top_sequence: int | None = None
+    _missing: dict[int, bool] = field(default_factory=dict)  # sequence -> counts when lost
+    _top_group: int | None = None
+    _last_arrival_s: float | None = None
+
+    @property
+    def skipped(self) -> int:
+        """What the feedback message calls skipped: every group not played to its end."""
+        return self.skipped_groups + self.reset_groups
+
+    def on_fragment(self, sequence: int | None, now_s: float, counting: bool = True) -> None:
+        """One video frame arrived complete; ``sequence`` from its mfhd (None: unreadable)."""
+        last, self._last_arrival_s = self._last_arrival_s, now_s
+        if last is not None and counting:
+            gap_ms = (now_s - last) * 1000.0
+            if gap_ms > FREEZE_MS:
+                self.freezes += 1
+                self.freeze_ms += gap_ms
+                self.longest_freeze_ms = max(self.longest_freeze_ms, gap_ms)
+        if sequence is None:
+            return
+        top = self._top_sequence
+        if top is not None and sequence < top - RESTART_BELOW:
+            self._settle(0)  # what was missing before the renumbering stays missing
+            top = None
+        if top is None:
+            self._top_sequence = sequence
+        elif sequence > top:
+            gap = sequence - top - 1
+            if gap > MAX_MISSING:
+                self.lost += gap if counting else 0
+            else:
+                for missing in range(top + 1, sequence):
+                    self._missing[missing] = counting
+            self._top_sequence = sequence
+        else:
+            self._missing.pop(sequence, None)  # a late one: not lost after all
+        self._settle(REORDER_FRAGMENTS)
+
+    def on_group(self, sequence: int, counting: bool = True) -> None:
+        top = self._top_group
+        if top is not None and sequence > top + 1 and counting:
+            self.skipped_groups += sequence - top - 1
+        if top is None or sequence > top:
+            self._top_group = sequence
+
+    def on_group_reset(self, counting: bool = True) -> None:
+        if counting:
+            self.reset_groups += 1
+
+    def settle(self) -> None:
+        """Count every gap still open as lost (the stream is over for us)."""
+        self._settle(0)
+
+    def _settle(self, keep: int) -> None:
+        top = self._top_sequence
+        while self._missing and top is not None:
+            oldest = next(iter(self._missing))
+            if top - oldest <= keep:
+                break
+            if self._missing.pop(oldest):
+                self.lost += 1
+
+    def summary(self) -> dict[str, Any]:
+        return {
+            "lost": self.lost,
+            "skipped_groups": self.skipped_groups,
+            "reset_groups": self.reset_groups,
+            "freezes": self.freezes,
+            "freeze_ms": round(self.freeze_ms, 1),
+            "longest_freeze_ms": round(self.longest_freeze_ms, 1),
+        }
 
 
 @dataclass
@@ -65,6 +168,9 @@ class ViewerStats:
     _early_records: dict[int, dict[str, Any]] = field(default_factory=dict)
     _seen_n: set[int] = field(default_factory=set)  # timing records arriving in the window
     _matched_n: set[int] = field(default_factory=set)  # records whose video frame arrived
+    # Since the viewer subscribed (what its feedback reports), and inside the window.
+    delivery: DeliveryCounters = field(default_factory=DeliveryCounters)
+    delivery_window: DeliveryCounters = field(default_factory=DeliveryCounters)
 
     def in_window(self, now_s: float) -> bool:
         return self.window[0] <= now_s < self.window[1]
@@ -76,8 +182,11 @@ class ViewerStats:
         now_s: float,
         wall_us: int,
         duration_us: int | None = None,
+        sequence: int | None = None,
     ) -> None:
         inside = self.in_window(now_s)
+        self.delivery.on_fragment(sequence, now_s)
+        self.delivery_window.on_fragment(sequence, now_s, counting=inside)
         if inside and pts_us is not None:
             self._media_arrivals_us.setdefault(pts_us, wall_us)
             if duration_us and self._frame_duration_us is None:
@@ -99,9 +208,17 @@ class ViewerStats:
         if len(self._arrivals_us) > MAX_PENDING:
             self._arrivals_us.pop(next(iter(self._arrivals_us)))
 
-    def on_group(self, now_s: float) -> None:
-        if self.in_window(now_s):
+    def on_group(self, now_s: float, sequence: int | None = None) -> None:
+        inside = self.in_window(now_s)
+        if inside:
             self.groups += 1
+        if sequence is not None:
+            self.delivery.on_group(sequence)
+            self.delivery_window.on_group(sequence, counting=inside)
+
+    def on_group_reset(self, now_s: float) -> None:
+        self.delivery.on_group_reset()
+        self.delivery_window.on_group_reset(counting=self.in_window(now_s))
 
     def on_timing(self, record: dict[str, Any], now_s: float) -> None:
         n = record.get("n")
@@ -178,6 +295,8 @@ class ViewerStats:
         """Forget the unmatched frames (nothing will match them now; keeps pickles small)."""
         self._arrivals_us.clear()
         self._early_records.clear()
+        self.delivery.settle()
+        self.delivery_window.settle()
 
     def summary(self) -> dict[str, Any]:
         return {
@@ -199,6 +318,8 @@ class ViewerStats:
             "publish_to_receive_ms": percentiles(self.publish_to_receive_ms),
             "render_end_to_receive_ms": percentiles(self.render_end_to_receive_ms),
             "media_delay_ms": percentiles(self.media_delay_ms()),
+            # In the window, counted as the browser counts (see DeliveryCounters).
+            "delivery": self.delivery_window.summary(),
         }
 
 
