@@ -92,8 +92,10 @@ class GameBroadcast:
         *,
         on_input: Callable[[str, bytes], None],
         on_keyframe_wanted: Callable[[], None],
+        on_input_ended: Callable[[str], None] | None = None,
         audio: bool = False,
     ) -> None:
+        """``on_input_ended(source)``: a viewer's input broadcast ended (it left)."""
         self.name = paths.normalize(name)
         self.tracks = TRACKS if audio else SILENT_TRACKS
         self.catalog_json = catalog_json
@@ -101,6 +103,7 @@ class GameBroadcast:
         self.stats = BroadcastStats()
         self._on_input = on_input
         self._on_keyframe_wanted = on_keyframe_wanted
+        self._on_input_ended = on_input_ended
         self._session: MoqSession | None = None
         self._subscribers: dict[int, _Subscriber] = {}  # request id -> state
         self._input_interest: int | None = None
@@ -233,6 +236,9 @@ class GameBroadcast:
             subscription = self._input_paths.pop(path)
             self._inputs.pop(subscription, None)
             session.unsubscribe(subscription)
+            log.info("viewer input from %s ended", path)
+            if self._on_input_ended is not None:
+                self._on_input_ended(path)
 
     def _count_subscribers(self) -> None:
         counts = dict.fromkeys(self.tracks, 0)

@@ -28,6 +28,7 @@ from server.session.viewer_input import (
     KeysMessage,
     LookMessage,
     PointerMessage,
+    ViewerMessage,
     look_input,
     parse_viewer_message,
 )
@@ -52,6 +53,7 @@ class InputRouter:
         on_frame_generation: Callable[[bool], None] | None = None,
         on_cache_policy: Callable[[str | None], None] | None = None,
         on_control_result: Callable[[ControlResult], None] | None = None,
+        on_message: Callable[[str, ViewerMessage], None] | None = None,
         color_only: bool = False,
         gamepad_keys: GamepadKeyMap | None = None,
     ) -> None:
@@ -76,6 +78,8 @@ class InputRouter:
         self._worker_turn = asyncio.Lock()
         # Every control request ends in exactly one result (the status track shows it).
         self.on_control_result = on_control_result
+        # Sees every accepted message with its source (the rate control reads feedback).
+        self.on_message = on_message
         self.held: dict[str, HeldKeys] = {}
         self.accepted = 0
         self.refused = 0
@@ -91,6 +95,8 @@ class InputRouter:
             self._refuse_bad_control(source, payload, str(exc))
             return
         self.accepted += 1
+        if self.on_message is not None:
+            self.on_message(source, message)
         if isinstance(message, LookMessage):
             if not self.color_only:
                 self._to_game(look_input(message))

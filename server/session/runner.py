@@ -36,6 +36,7 @@ from server.session.broadcast import GameBroadcast
 from server.session.capture import CapturedFrame, CaptureThread
 from server.session.gamepad_keys import GamepadKeyMap
 from server.session.input_router import InputRouter
+from server.session.session_rate import SessionRate
 
 log = logging.getLogger(__name__)
 
@@ -63,6 +64,16 @@ class StreamSettings:
     # Publish the game's sound (Opus, track ``audio``). Off here so library users opt
     # in; the commands (upcast up, serve, session) turn it on unless --no-audio.
     audio: bool = False
+    # The bitrate follows the player's feedback (session_rate.py); off: fixed.
+    rate_control: bool = True
+    # Intra refresh sweeps instead of periodic IDRs (encode.py); a viewer that lost a
+    # group asks for a keyframe, and one comes every SAFETY_IDR_S for those that cannot.
+    intra_refresh: bool = True
+
+
+# Under intra refresh, an IDR this often anyway: a spectator the relay skipped (which
+# cannot ask for a keyframe) waits at most this long for a group to join.
+SAFETY_IDR_S = 10.0
 
 
 class StreamingSession:
@@ -91,8 +102,11 @@ class StreamingSession:
                 fps=settings.fps,
                 bitrate=settings.bitrate,
                 gop_seconds=settings.gop_seconds,
+                intra_refresh=settings.intra_refresh,
             )
         )
+        self.stream_state: dict[str, str | float | bool] = {}
+        self.rate = SessionRate(self.encoder, self.stream_state, enabled=settings.rate_control)
         self.monitor = FrameRateMonitor("session", settings.fps, registry=registry)
         self.router = InputRouter(
             game_input=game_input,
@@ -104,6 +118,7 @@ class StreamingSession:
             on_cache_policy=self._cache_policy_set,
             color_only=settings.source != "game",
             gamepad_keys=settings.gamepad,
+            on_message=self.rate.on_message,
         )
         self._on_upscaler_set = on_upscaler_set
         self._on_scale_request = on_scale_request
@@ -129,8 +144,10 @@ class StreamingSession:
             catalog_for(self.encoder, audio=audio).to_json(),
             on_input=self.router.handle,
             on_keyframe_wanted=self.encoder.request_keyframe,
+            on_input_ended=self._input_ended,
             audio=audio is not None,
         )
+        self.broadcast.stream_state = self.stream_state
         # The page disables what the source cannot do (a captured application: methods
         # that need depth and motion, scale changes, frame generation).
         self.broadcast.stream_state["source"] = settings.source
@@ -206,7 +223,10 @@ class StreamingSession:
             asyncio.create_task(self._relay_loop(stop), name="session-relay"),
             asyncio.create_task(self._tick_loop(stop), name="session-inputs"),
             asyncio.create_task(self._monitor_loop(stop), name="session-monitor"),
+            asyncio.create_task(self.rate.run(stop), name="session-rate"),
         ]
+        if self.settings.intra_refresh:
+            tasks.append(asyncio.create_task(self._safety_idr_loop(stop), name="session-idr"))
         try:
             await stop.wait()
         finally:
@@ -237,8 +257,13 @@ class StreamingSession:
         if link is not None and not link.closed:
             link.flush()
 
+    def _input_ended(self, source: str) -> None:
+        self.router.forget(source)
+        self.rate.forget(source)
+
     def _publish(self, frame: CapturedFrame) -> None:
         self.broadcast.publish_frame(frame.encoded, frame.meta)
+        self.rate.frame_sent(frame.encoded)
         link = self.link
         if link is not None and not link.closed:
             link.flush()
@@ -289,6 +314,11 @@ class StreamingSession:
         while not stop.is_set():
             await asyncio.sleep(period)
             self.router.tick()
+
+    async def _safety_idr_loop(self, stop: asyncio.Event) -> None:
+        while not stop.is_set():
+            await asyncio.sleep(SAFETY_IDR_S)
+            self.encoder.request_keyframe()
 
     async def _monitor_loop(self, stop: asyncio.Event) -> None:
         while not stop.is_set():

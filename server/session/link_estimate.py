@@ -1,0 +1,177 @@
+"""What one viewer's feedback says about its path: throughput, queueing delay, loss.
+
+Delay-based, in the spirit of Google Congestion Control's receive-side estimator:
+a frame's one-way delay is its arrival on the viewer's clock minus its send on
+ours. The two clocks have an unknown offset, so only changes mean anything: the
+lowest delay of the last ``BASE_WINDOW_S`` is the empty-queue path, and how far
+the recent frames sit above it is the queue that builds when we send faster
+than the path carries. A queue shows up a few frames after the rate exceeds the
+capacity, long before loss (a drop-tail buffer of 100 ms at a home router, or
+the relay's QUIC sender holding data back), which is why the rate controller
+reacts to it first.
+
+Only what the session can check is used: a frame counts when its pts is one we
+sent, with the size we sent, so a viewer cannot report more throughput than the
+stream carried; counters that go backwards count as zero; a pts reported twice
+counts once.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+
+from server.session.feedback import FeedbackFields
+
+BASE_WINDOW_S = 10.0  # the empty-queue delay is the lowest seen this long
+RATE_WINDOW_S = 1.0  # throughput over the last second of arrivals
+RECENT_FRAMES = 5  # queueing delay: median of this many newest frames (jitter)
+SENT_HISTORY = 1200  # frames remembered for matching reports (20 s at 60 fps)
+
+
+@dataclass(frozen=True)
+class SentFrame:
+    sent_s: float  # monotonic, when the session handed it to the link
+    size: int  # bytes of the fragment
+
+
+class SendLog:
+    """The frames the session sent lately, by pts, for checking what viewers report."""
+
+    def __init__(self, capacity: int = SENT_HISTORY) -> None:
+        self._frames: dict[int, SentFrame] = {}
+        self._order: deque[int] = deque()
+        self._capacity = capacity
+
+    def add(self, pts_us: int, size: int, now_s: float) -> None:
+        if pts_us in self._frames:
+            return
+        self._frames[pts_us] = SentFrame(now_s, size)
+        self._order.append(pts_us)
+        while len(self._order) > self._capacity:
+            self._frames.pop(self._order.popleft(), None)
+
+    def get(self, pts_us: int) -> SentFrame | None:
+        return self._frames.get(pts_us)
+
+    def bits_per_second(self, now_s: float, window_s: float = RATE_WINDOW_S) -> float:
+        """What the session sent over the last ``window_s``."""
+        total = 0
+        for pts in reversed(self._order):
+            frame = self._frames[pts]
+            if frame.sent_s < now_s - window_s:
+                break
+            total += frame.size
+        return total * 8 / window_s
+
+
+@dataclass
+class LinkSample:
+    """The estimate after a report; ``None`` where there were too few frames to say."""
+
+    delivered_bps: float | None
+    queue_ms: float | None
+    queue_rising: bool
+    loss: float  # fraction of video frames lost since the previous report
+    skipped: int  # groups skipped since the previous report
+    freezes: int  # freezes since the previous report
+
+
+@dataclass
+class _Arrival:
+    arrival_ms: float
+    delay_ms: float  # arrival (viewer clock) - send (our clock): offset unknown, constant
+    size: int
+
+
+class LinkEstimate:
+    """One viewer's path, from its feedback reports."""
+
+    def __init__(self) -> None:
+        self._arrivals: deque[_Arrival] = deque()
+        self._seen: set[int] = set()
+        self._seen_order: deque[int] = deque()
+        self._last_counts = FeedbackFields()
+        self.frames_matched = 0
+        self.frames_unverified = 0  # reported pts the session never sent (or forgot)
+
+    def report(self, fields: FeedbackFields, log: SendLog) -> LinkSample:
+        for pts, arrival_ms in fields.frames:
+            if pts in self._seen:
+                continue
+            sent = log.get(pts)
+            if sent is None:
+                self.frames_unverified += 1
+                continue
+            self._remember(pts)
+            self.frames_matched += 1
+            self._arrivals.append(_Arrival(arrival_ms, arrival_ms - sent.sent_s * 1000, sent.size))
+        self._drop_old()
+        sample = LinkSample(
+            delivered_bps=self._delivered_bps(),
+            queue_ms=self._queue_ms(),
+            queue_rising=self._queue_rising(),
+            loss=self._loss(fields),
+            skipped=max(0, fields.skipped - self._last_counts.skipped),
+            freezes=max(0, fields.freezes - self._last_counts.freezes),
+        )
+        self._last_counts = fields.model_copy(update={"frames": []})
+        return sample
+
+    def _remember(self, pts: int) -> None:
+        self._seen.add(pts)
+        self._seen_order.append(pts)
+        if len(self._seen_order) > SENT_HISTORY:
+            self._seen.discard(self._seen_order.popleft())
+
+    def _drop_old(self) -> None:
+        if not self._arrivals:
+            return
+        newest = max(a.arrival_ms for a in list(self._arrivals)[-RECENT_FRAMES:])
+        while self._arrivals and self._arrivals[0].arrival_ms < newest - BASE_WINDOW_S * 1000:
+            self._arrivals.popleft()
+
+    def _recent(self, window_s: float) -> list[_Arrival]:
+        if not self._arrivals:
+            return []
+        newest = self._arrivals[-1].arrival_ms
+        return [a for a in self._arrivals if a.arrival_ms >= newest - window_s * 1000]
+
+    def _delivered_bps(self) -> float | None:
+        recent = self._recent(RATE_WINDOW_S)
+        if len(recent) < 3:
+            return None
+        span_ms = recent[-1].arrival_ms - recent[0].arrival_ms
+        # The first frame's bytes arrived before the window opened: count the rest.
+        bits = sum(a.size for a in recent[1:]) * 8
+        # A viewer claiming every frame arrived at once gets no more than the window.
+        return bits / max(span_ms / 1000, RATE_WINDOW_S / 2)
+
+    def _queue_ms(self) -> float | None:
+        if len(self._arrivals) < RECENT_FRAMES:
+            return None
+        base = min(a.delay_ms for a in self._arrivals)
+        recent = sorted(a.delay_ms for a in list(self._arrivals)[-RECENT_FRAMES:])
+        return recent[len(recent) // 2] - base
+
+    def _queue_rising(self) -> bool:
+        """The delay trend of the last half second (least squares over arrival time)
+        goes up by more than 1 ms per 100 ms: the queue is filling now, not just high."""
+        recent = self._recent(0.5)
+        if len(recent) < 4:
+            return False
+        t0 = recent[0].arrival_ms
+        xs = [a.arrival_ms - t0 for a in recent]
+        ys = [a.delay_ms for a in recent]
+        mean_x = sum(xs) / len(xs)
+        mean_y = sum(ys) / len(ys)
+        var = sum((x - mean_x) ** 2 for x in xs)
+        if var <= 0:
+            return False
+        slope = sum((x - mean_x) * (y - mean_y) for x, y in zip(xs, ys, strict=True)) / var
+        return slope > 0.01
+
+    def _loss(self, fields: FeedbackFields) -> float:
+        lost = max(0, fields.lost - self._last_counts.lost)
+        received = len(fields.frames)
+        return lost / (lost + received) if lost + received else 0.0

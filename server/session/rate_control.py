@@ -1,0 +1,219 @@
+"""The session's video bitrate follows what its player's link carries.
+
+A delay-based controller in the spirit of Google Congestion Control (GCC, the
+one WebRTC uses), chosen over BBR-style probing because the stream is a
+real-time, mostly app-limited source whose receiver already reports per-frame
+arrivals: the queueing delay those arrivals show rises as soon as the encoder
+outruns the path, before a buffer overflows, and a frame that waits in a queue
+is a frame shown late. BBR needs to probe by overshooting, which for live video
+is a visible stall every few seconds.
+
+- **Down fast**: a growing queue (``QUEUE_OVERUSE_MS`` above the path's empty
+  delay and still rising, or ``QUEUE_HIGH_MS`` whatever the trend), heavy loss
+  (``LOSS_OVERUSE``) or a group the relay had to skip sets the rate to
+  ``DECREASE`` times what the viewer actually received over the last second (at
+  most ``DECREASE`` times the current rate), at most once per
+  ``DECREASE_HOLD_S`` so one congestion episode is one step.
+- **Up carefully**: after ``INCREASE_HOLD_S`` without congestion, up by
+  ``INCREASE_PER_S`` a second; close to the rate where congestion happened in the
+  last ``CONGESTION_MEMORY_S``, only by ``ADDITIVE_PER_S`` of that rate a second
+  (GCC's near-convergence mode: the link's limit is probably there), never
+  above ``PROBE_HEADROOM`` times what the viewer received (an app-limited stream
+  cannot prove more) nor the configured bitrate.
+- **No feedback**: a player that sends input but no feedback (an old page), or
+  whose feedback stopped for ``STALE_S`` (its link died, or it lies by silence),
+  gets ``SAFE_FRACTION`` of the configured rate until it reports again. With no
+  player at all (spectators only, or nobody) the configured rate stands:
+  spectators keep the relay's skip-ahead.
+
+Several players: the lowest rate wins (the encoder serves them all).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+from server.session.feedback import FeedbackFields
+from server.session.link_estimate import LinkEstimate, LinkSample, SendLog
+
+log = logging.getLogger(__name__)
+
+QUEUE_OVERUSE_MS = 30.0
+QUEUE_HIGH_MS = 120.0
+LOSS_OVERUSE = 0.10  # video frames lost since the last report (not packets: QUIC repairs those)
+DECREASE = 0.85
+DECREASE_HOLD_S = 0.5
+INCREASE_HOLD_S = 1.0
+INCREASE_PER_S = 0.12  # multiplicative, far from the last congestion
+ADDITIVE_PER_S = 0.04  # of the rate at the last congestion, per second, near it
+NEAR_CONGESTION = 0.15  # within this fraction of the rate at the last decrease...
+CONGESTION_MEMORY_S = 3.0  # ...which happened less than this long ago
+PROBE_HEADROOM = 1.5
+STALE_S = 2.0
+SILENT_PLAYER_S = 3.0  # input without any feedback for this long: an old page
+SAFE_FRACTION = 0.25
+CHANGE_STEP = 0.03  # tell the encoder only about changes larger than this
+
+
+@dataclass
+class _Viewer:
+    estimate: LinkEstimate = field(default_factory=LinkEstimate)
+    first_seen_s: float = 0.0
+    last_report_s: float | None = None
+    rate: float = 0.0  # this viewer's allowed rate
+    last_decrease_s: float = -1e9
+    congestion_rate: float | None = None  # the rate at the last decrease
+    last_sample: LinkSample | None = None
+    decreases: int = 0
+
+
+@dataclass(frozen=True)
+class RateState:
+    """What the controller decided, for the timing track, metrics and logs."""
+
+    bitrate: int
+    reason: str  # "configured", "no feedback", "congestion", "probing", "steady"
+    players: int
+    delivered_bps: float | None
+    queue_ms: float | None
+
+
+class RateController:
+    def __init__(self, ceiling_bps: int, floor_bps: int, *, send_log: SendLog | None = None):
+        if floor_bps <= 0 or ceiling_bps < floor_bps:
+            raise ValueError(f"need 0 < floor <= ceiling, got {floor_bps} and {ceiling_bps}")
+        self.ceiling = float(ceiling_bps)
+        self.floor = float(floor_bps)
+        self.safe = max(self.floor, self.ceiling * SAFE_FRACTION)
+        self.sent = send_log or SendLog()
+        self._players: dict[str, _Viewer] = {}
+        self._spectators: dict[str, LinkEstimate] = {}
+        self._last_update_s: float | None = None
+        self._told = float(ceiling_bps)
+        self.state = RateState(int(ceiling_bps), "configured", 0, None, None)
+
+    # -- what happens -------------------------------------------------------------
+
+    def frame_sent(self, pts_us: int, size: int, now_s: float) -> None:
+        self.sent.add(pts_us, size, now_s)
+
+    def input_seen(self, source: str, now_s: float) -> None:
+        """Any input from ``source``: it plays, whether or not it sends feedback."""
+        if source not in self._players:
+            self._players[source] = _Viewer(first_seen_s=now_s, rate=self._start_rate())
+            self._spectators.pop(source, None)
+
+    def feedback(self, source: str, fields: FeedbackFields, now_s: float) -> None:
+        if not fields.player and source not in self._players:
+            spectator = self._spectators.setdefault(source, LinkEstimate())
+            spectator.report(fields, self.sent)
+            return
+        self.input_seen(source, now_s)
+        viewer = self._players[source]
+        viewer.last_report_s = now_s
+        viewer.last_sample = viewer.estimate.report(fields, self.sent)
+        self._react(viewer, viewer.last_sample, now_s)
+
+    def forget(self, source: str) -> None:
+        self._players.pop(source, None)
+        self._spectators.pop(source, None)
+
+    # -- the decision -------------------------------------------------------------
+
+    def update(self, now_s: float) -> int | None:
+        """The rate the encoder should use now, or None when it need not change."""
+        dt = 0.0 if self._last_update_s is None else max(0.0, now_s - self._last_update_s)
+        self._last_update_s = now_s
+        rates: list[tuple[float, str]] = []
+        for viewer in self._players.values():
+            rates.append(self._viewer_rate(viewer, now_s, dt))
+        if rates:
+            rate, reason = min(rates)
+        else:
+            rate, reason = self.ceiling, "configured"
+        delivered, queue = self._worst_sample()
+        self.state = RateState(int(rate), reason, len(self._players), delivered, queue)
+        if abs(rate - self._told) <= CHANGE_STEP * self._told and rate not in (
+            self.floor,
+            self.ceiling,
+        ):
+            return None
+        if int(rate) == int(self._told):
+            return None
+        self._told = rate
+        return int(rate)
+
+    def _start_rate(self) -> float:
+        # A new player starts where the stream is; the first reports correct it.
+        return self._told
+
+    def _viewer_rate(self, viewer: _Viewer, now_s: float, dt: float) -> tuple[float, str]:
+        if viewer.last_report_s is None:
+            if now_s - viewer.first_seen_s >= SILENT_PLAYER_S:
+                viewer.rate = min(viewer.rate, self.safe)
+                return viewer.rate, "no feedback"
+            return viewer.rate, "steady"
+        if now_s - viewer.last_report_s >= STALE_S:
+            viewer.rate = min(viewer.rate, self.safe)
+            return viewer.rate, "no feedback"
+        if now_s - viewer.last_decrease_s < INCREASE_HOLD_S:
+            return viewer.rate, "congestion"
+        sample = viewer.last_sample
+        if sample is None or sample.delivered_bps is None:
+            return viewer.rate, "steady"
+        last = viewer.congestion_rate
+        near = (
+            last is not None
+            and now_s - viewer.last_decrease_s < CONGESTION_MEMORY_S + INCREASE_HOLD_S
+            and abs(viewer.rate - last) <= NEAR_CONGESTION * last
+        )
+        step = ADDITIVE_PER_S * last if near and last else INCREASE_PER_S * viewer.rate
+        proven = PROBE_HEADROOM * sample.delivered_bps + 0.05 * self.ceiling
+        target = min(self.ceiling, viewer.rate + step * min(dt, 1.0))
+        # An app-limited stream cannot prove more than it sent; never lower it here.
+        viewer.rate = max(viewer.rate, min(target, proven))
+        return viewer.rate, "probing" if viewer.rate < self.ceiling else "steady"
+
+    def _react(self, viewer: _Viewer, sample: LinkSample, now_s: float) -> None:
+        queue = sample.queue_ms
+        congested = (
+            (queue is not None and queue > QUEUE_HIGH_MS)
+            or (queue is not None and queue > QUEUE_OVERUSE_MS and sample.queue_rising)
+            or sample.loss > LOSS_OVERUSE
+            or sample.skipped > 0
+        )
+        if not congested or now_s - viewer.last_decrease_s < DECREASE_HOLD_S:
+            return
+        delivered = sample.delivered_bps
+        cut = viewer.rate * DECREASE
+        if delivered is not None:
+            cut = min(cut, delivered * DECREASE)
+        # Where the link gave out: what arrived, not what we aimed at (above it).
+        viewer.congestion_rate = delivered if delivered is not None else viewer.rate
+        viewer.rate = max(self.floor, cut)
+        viewer.last_decrease_s = now_s
+        viewer.decreases += 1
+        log.info(
+            "rate: %.2f Mbit/s (queue %s ms%s, loss %.0f %%, skipped %d, received %s Mbit/s)",
+            viewer.rate / 1e6,
+            "?" if queue is None else f"{queue:.0f}",
+            ", rising" if sample.queue_rising else "",
+            sample.loss * 100,
+            sample.skipped,
+            "?" if delivered is None else f"{delivered / 1e6:.2f}",
+        )
+
+    def _worst_sample(self) -> tuple[float | None, float | None]:
+        delivered: float | None = None
+        queue: float | None = None
+        for viewer in self._players.values():
+            sample = viewer.last_sample
+            if sample is None:
+                continue
+            got = sample.delivered_bps
+            if got is not None:
+                delivered = got if delivered is None else min(delivered, got)
+            if sample.queue_ms is not None:
+                queue = sample.queue_ms if queue is None else max(queue, sample.queue_ms)
+        return delivered, queue

@@ -1,0 +1,79 @@
+"""Binds the rate controller to a live session: viewers' messages in, encoder bitrate out.
+
+The controller (rate_control.py) is pure logic; this runs it every
+``UPDATE_INTERVAL_S`` on the session's loop, hands the encoder each new rate
+(the encoding thread applies it before its next frame), and puts the rate and
+why in the session's ``stream_state``, which rides in every timing record: the
+page's overlay and ``upcast bench network`` read it from there.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+
+from server.media.encode import MIN_BITRATE, EncodedFrame, VideoEncoder
+from server.session.rate_control import RateController
+from server.session.viewer_input import FeedbackMessage, ViewerMessage
+
+log = logging.getLogger(__name__)
+
+UPDATE_INTERVAL_S = 0.1
+
+
+class SessionRate:
+    def __init__(
+        self,
+        encoder: VideoEncoder,
+        stream_state: dict[str, str | float | bool],
+        *,
+        enabled: bool = True,
+    ) -> None:
+        """``enabled=False``: the configured bitrate stays whatever viewers report."""
+        self.encoder = encoder
+        self.enabled = enabled
+        self.controller = RateController(encoder.config.target_bitrate, MIN_BITRATE)
+        self._state = stream_state
+        self._publish_state()
+
+    def frame_sent(self, encoded: EncodedFrame) -> None:
+        self.controller.frame_sent(encoded.pts_us, len(encoded.fragment), time.monotonic())
+
+    def on_message(self, source: str, message: ViewerMessage) -> None:
+        now = time.monotonic()
+        if isinstance(message, FeedbackMessage):
+            self.controller.feedback(source, message, now)
+        else:
+            self.controller.input_seen(source, now)
+
+    def forget(self, source: str) -> None:
+        self.controller.forget(source)
+
+    def step(self, now_s: float) -> None:
+        rate = self.controller.update(now_s)
+        if rate is not None and self.enabled:
+            applied = self.encoder.set_bitrate(rate)
+            state = self.controller.state
+            log.info(
+                "bitrate %.2f Mbit/s (%s, %d player%s)",
+                applied / 1e6,
+                state.reason,
+                state.players,
+                "" if state.players == 1 else "s",
+            )
+        self._publish_state()
+
+    async def run(self, stop: asyncio.Event) -> None:
+        while not stop.is_set():
+            await asyncio.sleep(UPDATE_INTERVAL_S)
+            self.step(time.monotonic())
+
+    def _publish_state(self) -> None:
+        state = self.controller.state
+        self._state["bitrate"] = self.encoder.bitrate
+        self._state["rate_reason"] = state.reason if self.enabled else "fixed"
+        if state.delivered_bps is not None:
+            self._state["received_bps"] = round(state.delivered_bps)
+        if state.queue_ms is not None:
+            self._state["queue_ms"] = round(state.queue_ms, 1)

@@ -1,0 +1,167 @@
+"""The session's rate controller against a simulated bottleneck link.
+
+The simulation is the path the stream takes: frames of ``rate / fps`` bits leave
+the session every frame interval, queue at a bottleneck of the given capacity
+(drop-tail at 100 ms, like a home router), arrive after the propagation delay,
+and the viewer reports them every 250 ms with its own clock (an arbitrary
+offset from ours). No sockets, no real time: seconds of link in milliseconds.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from server.session.feedback import FeedbackFields
+from server.session.rate_control import SAFE_FRACTION, RateController
+
+FPS = 30
+CEILING = 6_000_000
+FLOOR = 100_000
+CLOCK_OFFSET_MS = 123_456.0  # the viewer's performance.now() is not our monotonic clock
+
+
+@dataclass
+class Run:
+    times: list[float] = field(default_factory=list)
+    rates: list[float] = field(default_factory=list)
+    lost_frames: int = 0
+    lost_at: list[float] = field(default_factory=list)
+
+    def rate_at(self, t: float) -> float:
+        return next(r for tt, r in zip(self.times, self.rates, strict=True) if tt >= t)
+
+    def between(self, t0: float, t1: float) -> list[float]:
+        return [r for t, r in zip(self.times, self.rates, strict=True) if t0 <= t < t1]
+
+
+def simulate(
+    capacity: Callable[[float], float],
+    seconds: float,
+    *,
+    delay_s: float = 0.015,
+    queue_s: float = 0.1,
+    controller: RateController | None = None,
+    report: bool = True,
+) -> tuple[Run, RateController]:
+    rc = controller or RateController(CEILING, FLOOR)
+    rate = float(CEILING)
+    link_free_at = 0.0
+    pending: list[tuple[int, float]] = []  # (pts, arrival on the viewer's clock in ms)
+    lost = 0
+    run = Run()
+    next_report = 0.25
+    next_update = 0.1
+    steps = int(seconds * FPS)
+    for i in range(steps):
+        now = i / FPS
+        size = int(rate / FPS / 8)
+        pts = i * 33_333
+        rc.frame_sent(pts, size, now)
+        start = max(now, link_free_at)
+        if start - now > queue_s:
+            lost += 1  # the bottleneck's buffer is full: the frame is lost
+            run.lost_at.append(now)
+        else:
+            link_free_at = start + size * 8 / capacity(now)
+            pending.append((pts, (link_free_at + delay_s) * 1000 + CLOCK_OFFSET_MS))
+        while report and now >= next_report:
+            due = [p for p in pending if p[1] - CLOCK_OFFSET_MS <= now * 1000]
+            pending = [p for p in pending if p[1] - CLOCK_OFFSET_MS > now * 1000]
+            fields = FeedbackFields(player=True, frames=due[-64:], lost=lost)
+            rc.feedback("viewer", fields, now)
+            next_report += 0.25
+        while now >= next_update:
+            new = rc.update(now)
+            if new is not None:
+                rate = float(new)
+            next_update += 0.1
+        run.times.append(now)
+        run.rates.append(rate)
+    run.lost_frames = lost
+    return run, rc
+
+
+def test_a_narrow_link_brings_the_rate_under_its_capacity_quickly_and_it_stays() -> None:
+    run, _ = simulate(lambda t: 2_000_000, 30)
+    assert run.rate_at(2.0) < 2_000_000, run.between(0, 2)
+    late = run.between(10, 30)
+    # A delay-based controller finds the limit by passing it a little (the queue that
+    # builds is the signal), then steps back under it: a shallow sawtooth, no swings.
+    assert max(late) < 1.15 * 2_000_000, max(late)
+    assert sum(late) / len(late) > 0.8 * 2_000_000, "the rate should use most of the link"
+    assert max(late) / min(late) < 1.4, (min(late), max(late))
+
+
+def test_a_step_down_and_up_is_followed() -> None:
+    def capacity(t: float) -> float:
+        return 2_000_000 if 10 <= t < 20 else 20_000_000
+
+    run, _ = simulate(capacity, 32)
+    assert run.rate_at(9.9) == CEILING  # 20 Mbit/s carries the configured 6
+    assert run.rate_at(12.0) < 2_000_000, run.between(10, 12)
+    assert run.rate_at(30.0) > 0.7 * CEILING, run.between(20, 30)
+    # The step itself costs frames (a full buffer before any report can say so);
+    # from 2 s after it, none.
+    assert not [t for t in run.lost_at if 12 <= t], run.lost_at
+
+
+def test_an_unlimited_link_keeps_the_configured_rate() -> None:
+    run, rc = simulate(lambda t: 1e12, 10)
+    assert set(run.rates) == {CEILING}
+    assert rc.state.players == 1
+
+
+def test_a_player_that_never_reports_gets_the_safe_rate() -> None:
+    rc = RateController(CEILING, FLOOR)
+    rc.input_seen("old-page", 0.0)
+    assert rc.update(1.0) is None  # not yet: it may still start reporting
+    assert rc.update(3.5) == int(CEILING * SAFE_FRACTION)
+    assert rc.state.reason == "no feedback"
+
+
+def test_feedback_that_stops_falls_back_to_the_safe_rate_and_recovers() -> None:
+    rc = RateController(CEILING, FLOOR)
+    run, rc = simulate(lambda t: 1e12, 5, controller=rc)
+    assert rc.update(5.0 + 2.5) == int(CEILING * SAFE_FRACTION)
+    # Reports again: the rate climbs back (carefully: a few percent a second).
+    for i in range(40):
+        now = 8.0 + i * 0.25
+        pts = 10_000_000 + i * 33_333
+        rc.frame_sent(pts, 30_000, now)
+        rc.feedback("viewer", FeedbackFields(player=True, frames=[(pts, now * 1000 + 20)]), now)
+        rc.update(now)
+    assert rc.state.bitrate > CEILING * SAFE_FRACTION
+
+
+def test_lies_are_clamped_to_what_the_session_sent() -> None:
+    rc = RateController(CEILING, FLOOR)
+    rc.frame_sent(0, 1000, 0.0)
+    # Frames never sent, all "arrived" at once, huge counters: none of it raises the
+    # rate above the configured one or counts as throughput.
+    lie = FeedbackFields(player=True, frames=[(p * 1000 + 7, 5.0) for p in range(64)], bytes=10**12)
+    rc.feedback("liar", lie, 0.5)
+    rc.update(0.6)
+    assert rc.state.bitrate <= CEILING
+    assert rc._players["liar"].estimate.frames_unverified == 64
+    assert rc.state.delivered_bps is None
+    # Counters that go backwards count as nothing.
+    rc.feedback("liar", FeedbackFields(player=True, lost=10), 0.75)
+    rc.feedback("liar", FeedbackFields(player=True, lost=0), 1.0)
+    assert rc._players["liar"].last_sample is not None
+    assert rc._players["liar"].last_sample.loss == 0.0
+
+
+def test_spectators_do_not_set_the_rate_and_a_player_that_left_is_forgotten() -> None:
+    def narrow(t: float) -> float:
+        return 1_000_000
+
+    rc = RateController(CEILING, FLOOR)
+    simulate(narrow, 5, controller=rc)
+    assert rc.state.bitrate < 1_000_000
+    rc.forget("viewer")
+    assert rc.update(6.0) == CEILING
+    spectator = FeedbackFields(player=False, lost=100)
+    rc.feedback("spectator", spectator, 6.2)
+    assert rc.update(7.0) is None
+    assert rc.state.bitrate == CEILING
