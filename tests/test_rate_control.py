@@ -103,7 +103,7 @@ def test_a_step_down_and_up_is_followed() -> None:
     assert run.rate_at(30.0) > 0.7 * CEILING, run.between(20, 30)
     # The step itself costs frames (a full buffer before any report can say so);
     # from 2 s after it, none.
-    assert not [t for t in run.lost_at if 12 <= t], run.lost_at
+    assert not [t for t in run.lost_at if t >= 12], run.lost_at
 
 
 def test_an_unlimited_link_keeps_the_configured_rate() -> None:
@@ -122,7 +122,7 @@ def test_a_player_that_never_reports_gets_the_safe_rate() -> None:
 
 def test_feedback_that_stops_falls_back_to_the_safe_rate_and_recovers() -> None:
     rc = RateController(CEILING, FLOOR)
-    run, rc = simulate(lambda t: 1e12, 5, controller=rc)
+    _run, rc = simulate(lambda t: 1e12, 5, controller=rc)
     assert rc.update(5.0 + 2.5) == int(CEILING * SAFE_FRACTION)
     # Reports again: the rate climbs back (carefully: a few percent a second).
     for i in range(40):
