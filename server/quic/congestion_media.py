@@ -1,0 +1,275 @@
+"""A congestion controller for real-time media on lossy links: ``upcast-media``.
+
+Why not NewReno or CUBIC (aioquic's own): they read every loss as congestion and
+halve the window each time. At 1 % random loss on an 8 Mbit/s, 30 ms path that
+leaves a 5 Mbit/s video stream with 1.4 Mbit/s. Media wants a sender that holds its
+rate while the path delivers, and backs off when the path says it is full.
+
+The model, in the spirit of BBR (a rate estimate, not a loss-driven window):
+
+- **Delivery rate** is sampled on every ACK as in draft-cheng-iccrg-delivery-rate-
+  estimation: bytes delivered between a packet's send and its ACK, over the longer
+  of the send and the ACK interval. A windowed **max filter** (``BW_WINDOW_S``)
+  keeps the bottleneck estimate ``bw``; a 10 s **min filter** keeps ``min_rtt``.
+- **Window** ``cwnd = CWND_GAIN * bw * (min_rtt + ACK_ALLOWANCE_S)``, at least
+  ``MIN_WINDOW_PACKETS``. aioquic paces at ``cwnd / srtt``, so pacing follows the
+  estimate: about 2.5x ``bw`` on an empty queue, ``bw`` when our own queue stands.
+  The same gain makes the sender probe: while a link has room, each round's samples
+  are higher and the window doubles per round trip (no separate slow start).
+  ``ACK_ALLOWANCE_S`` covers ACK aggregation and event-loop stalls, which on
+  loopback dwarf the path's RTT (and would otherwise starve the window).
+
+How it reacts:
+
+- **Random loss of 1-2 %**: not at all. Lost packets only shave the delivered
+  bytes; the window does not move.
+- **Sustained loss above ``LOSS_THRESHOLD`` (10 %)**, measured over at least a
+  round trip and ``LOSS_MIN_PACKETS`` packets so a few unlucky drops never count:
+  a rate cap ``bw_cap`` is set to ``LOSS_BACKOFF`` (0.7) x the estimate, each such
+  round again; every clean round lets it grow by ``CAP_GROWTH`` until it no longer
+  binds. The cap is needed because the samples of a lossy but idle link stay high.
+- **Queueing delay growth**: a round whose smallest RTT exceeds what our own window
+  can queue (``QUEUE_RTT_FACTOR`` x the window's RTT term) means the estimate is
+  stale (the link slowed down) or someone else fills the queue. The max filter is
+  reset to the best sample of that round, what the full link actually delivered.
+- **Rate drop from 20 to 2 Mbit/s**: the queue builds within a round, the delay
+  rule fires and the window follows the 2 Mbit/s samples; the max filter forgets
+  the old rate within ``BW_WINDOW_S`` anyway. About 1 s in all.
+- **Persistent congestion** (e.g. 3 s of 100 % loss): the window collapses to the
+  minimum, the estimate and the cap are forgotten; growth restarts from the first
+  ACKs and doubles per round trip.
+- **App-limited periods** (video is app-limited most of the time): a packet sent
+  after the sender sat idle with room in its window marks the connection
+  app-limited until what is in flight is delivered. Such samples may raise the
+  estimate (they are real measurements) but never lower it, and the filter keeps
+  its best value while only app-limited samples arrive: idle scenes neither inflate
+  nor collapse the estimate. The window grows only from measured rates, never from
+  mere ACKs.
+
+Per-packet state is a snapshot taken at send time, in a dict keyed by (epoch,
+packet number): numbers are unique within a packet number space and aioquic hands
+every in-flight packet back exactly once (acked, lost or expired), where it is
+dropped.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from collections.abc import Iterable
+from dataclasses import dataclass
+from typing import Any
+
+import aioquic.quic.recovery  # noqa: F401  (registers aioquic's own "reno" and "cubic")
+from aioquic.quic.congestion import base as aioquic_congestion
+from aioquic.quic.congestion.base import QuicCongestionControl, register_congestion_control
+from aioquic.quic.packet_builder import QuicSentPacket
+from aioquic.tls import Epoch
+
+NAME = "upcast-media"
+
+CWND_GAIN = 2.0
+ACK_ALLOWANCE_S = 0.010
+MIN_WINDOW_PACKETS = 4
+BW_WINDOW_S = 1.0
+MIN_RTT_WINDOW_S = 10.0
+LOSS_THRESHOLD = 0.10
+LOSS_MIN_PACKETS = 32
+LOSS_BACKOFF = 0.7
+CAP_GROWTH = 1.25
+QUEUE_RTT_FACTOR = 1.25
+QUEUE_MIN_ROUND_PACKETS = 4
+IDLE_GAP_S = 0.002
+
+
+@dataclass(frozen=True, slots=True)
+class _SendState:
+    """The connection's delivery counters when a packet left."""
+
+    delivered: int
+    delivered_time: float
+    first_sent_time: float
+    app_limited: bool
+
+
+class WindowedMax:
+    """Max of the samples of the last `window` seconds (a monotonic deque).
+
+    Without new samples the best value stays: the estimate ages only when fresher
+    measurements replace it.
+    """
+
+    def __init__(self, window: float) -> None:
+        self.window = window
+        self._samples: deque[tuple[float, float]] = deque()
+
+    def update(self, now: float, value: float) -> None:
+        while self._samples and self._samples[-1][1] <= value:
+            self._samples.pop()
+        self._samples.append((now, value))
+        while self._samples[0][0] < now - self.window:
+            self._samples.popleft()
+
+    def reset(self, now: float, value: float) -> None:
+        self._samples.clear()
+        if value > 0:
+            self._samples.append((now, value))
+
+    @property
+    def value(self) -> float:
+        return self._samples[0][1] if self._samples else 0.0
+
+
+class MediaCongestionControl(QuicCongestionControl):
+    """Rate-based, loss-tolerant controller (see the module docstring)."""
+
+    def __init__(self, *, max_datagram_size: int) -> None:
+        super().__init__(max_datagram_size=max_datagram_size)
+        self._mss = max_datagram_size
+        self.min_window = MIN_WINDOW_PACKETS * max_datagram_size
+        self.bw_filter = WindowedMax(BW_WINDOW_S)
+        self.bw_cap = math.inf
+        self.min_rtt = math.inf
+        self._min_rtt_stamp = 0.0
+        self._sent: dict[tuple[Epoch, int], _SendState] = {}
+        # delivery-rate state
+        self.delivered = 0
+        self._delivered_time = 0.0
+        self._first_sent_time = 0.0
+        self._last_sent_time: float | None = None
+        self._app_limited_until = 0
+        # round trips: a round ends when a packet sent after it began is acked
+        self.rounds = 0
+        self._next_round_delivered = 0
+        self._round_min_rtt = math.inf
+        self._latest_rate = 0.0
+        self._round_packets = 0
+        # loss accounting over at least one round and LOSS_MIN_PACKETS packets
+        self._loss_acked = 0
+        self._loss_lost = 0
+
+    # -- the estimate --------------------------------------------------------
+
+    @property
+    def bandwidth(self) -> float:
+        """The rate the window is built on, bytes per second."""
+        return min(self.bw_filter.value, self.bw_cap)
+
+    def _update_window(self) -> None:
+        bw = self.bandwidth
+        if bw <= 0 or math.isinf(self.min_rtt):
+            return  # nothing measured yet: keep the initial (or collapsed) window
+        target = CWND_GAIN * bw * (self.min_rtt + ACK_ALLOWANCE_S)
+        self.congestion_window = max(self.min_window, int(target))
+
+    # -- aioquic's interface ---------------------------------------------------
+
+    def on_packet_sent(self, *, packet: QuicSentPacket) -> None:
+        now = packet.sent_time or 0.0
+        if self.bytes_in_flight == 0:
+            self._first_sent_time = self._delivered_time = now
+        idle = self._last_sent_time is not None and now - self._last_sent_time > IDLE_GAP_S
+        if idle and self.bytes_in_flight + packet.sent_bytes < self.congestion_window:
+            # The sender had room and sent nothing: it was short of data. Samples
+            # until what is in flight now is delivered measure the app, not the path.
+            self._app_limited_until = max(self.delivered + self.bytes_in_flight, 1)
+        self._last_sent_time = now
+        self._sent[packet.epoch, packet.packet_number] = _SendState(
+            self.delivered, self._delivered_time, self._first_sent_time, self._app_limited_until > 0
+        )
+        self.bytes_in_flight += packet.sent_bytes
+
+    def on_packet_acked(self, *, now: float, packet: QuicSentPacket) -> None:
+        self.bytes_in_flight -= packet.sent_bytes
+        self.delivered += packet.sent_bytes
+        self._delivered_time = now
+        self._loss_acked += 1
+        state = self._sent.pop((packet.epoch, packet.packet_number), None)
+        if self._app_limited_until and self.delivered > self._app_limited_until:
+            self._app_limited_until = 0
+        if state is None or packet.sent_time is None:
+            return
+        self._first_sent_time = packet.sent_time
+        if state.delivered >= self._next_round_delivered:
+            self._end_round(now)
+        self._round_packets += 1
+
+        interval = max(packet.sent_time - state.first_sent_time, now - state.delivered_time)
+        if interval <= 0 or interval < min(self.min_rtt, 1.0):
+            return  # shorter than a round trip: ACK compression, not a rate
+        rate = (self.delivered - state.delivered) / interval
+        self._latest_rate = rate
+        if not state.app_limited or rate >= self.bw_filter.value:
+            self.bw_filter.update(now, rate)
+        self._update_window()
+
+    def on_packets_expired(self, *, packets: Iterable[QuicSentPacket]) -> None:
+        for packet in packets:
+            self.bytes_in_flight -= packet.sent_bytes
+            self._sent.pop((packet.epoch, packet.packet_number), None)
+
+    def on_packets_lost(self, *, now: float, packets: Iterable[QuicSentPacket]) -> None:
+        for packet in packets:
+            self.bytes_in_flight -= packet.sent_bytes
+            self._sent.pop((packet.epoch, packet.packet_number), None)
+            self._loss_lost += 1
+
+    def on_persistent_congestion(self) -> None:
+        self.bw_filter.reset(0.0, 0.0)
+        self.bw_cap = math.inf
+        self._loss_acked = self._loss_lost = 0
+        self.congestion_window = self.min_window
+
+    def on_rtt_measurement(self, *, now: float, rtt: float) -> None:
+        if rtt <= self.min_rtt or now - self._min_rtt_stamp > MIN_RTT_WINDOW_S:
+            self.min_rtt = rtt
+            self._min_rtt_stamp = now
+        self._round_min_rtt = min(self._round_min_rtt, rtt)
+
+    def get_log_data(self) -> dict[str, Any]:
+        data = super().get_log_data()
+        data["bandwidth"] = self.bandwidth
+        return data
+
+    # -- once per round trip ---------------------------------------------------
+
+    def _end_round(self, now: float) -> None:
+        self.rounds += 1
+        self._next_round_delivered = self.delivered
+        own_rtt = CWND_GAIN * (self.min_rtt + ACK_ALLOWANCE_S)
+        queued = QUEUE_RTT_FACTOR * own_rtt < self._round_min_rtt < math.inf
+        if queued and self._round_packets >= QUEUE_MIN_ROUND_PACKETS and self._latest_rate:
+            # The newest sample was taken through the full queue: it is the link.
+            self.bw_filter.reset(now, min(self._latest_rate, self.bw_filter.value))
+        self._round_min_rtt = math.inf
+        self._round_packets = 0
+
+        counted = self._loss_acked + self._loss_lost
+        lossy = self._loss_lost > LOSS_THRESHOLD * max(counted, LOSS_MIN_PACKETS)
+        if lossy:
+            self.bw_cap = LOSS_BACKOFF * self.bandwidth
+        elif self.bw_cap < math.inf:
+            self.bw_cap *= CAP_GROWTH
+            if self.bw_cap > self.bw_filter.value:
+                self.bw_cap = math.inf
+        if lossy or counted >= LOSS_MIN_PACKETS:
+            self._loss_acked = self._loss_lost = 0
+        self._update_window()
+
+
+def register() -> None:
+    """Make ``upcast-media`` a name ``QuicConfiguration.congestion_control_algorithm``
+    accepts (idempotent)."""
+    register_congestion_control(NAME, MediaCongestionControl)
+
+
+def algorithm_names() -> tuple[str, ...]:
+    """The registered congestion control names, ours first. aioquic keeps its
+    registry private (``_factories``) and offers no listing; settings validate
+    against this."""
+    names = sorted(aioquic_congestion._factories)
+    names.remove(NAME)
+    return (NAME, *names)
+
+
+register()
