@@ -18,6 +18,16 @@ export interface DecoderEvents {
 	/** A decoded frame; the receiver owns it and must close() it. */
 	frame(frame: VideoFrame): void;
 	error(message: string): void;
+	/** The decoder failed and closed itself: it is rebuilt at the next keyframe, which the caller should ask for. */
+	needKey?(reason: string): void;
+}
+
+/** What one decode() call did. */
+export interface Decoded {
+	/** Sample timestamps (us) handed to the decoder. */
+	timestamps: number[];
+	/** Whether one of them was a keyframe. */
+	keyframe: boolean;
 }
 
 // A decoder that falls this far behind adds latency it never wins back: drop the rest
@@ -33,8 +43,13 @@ export class Decoder {
 	#pending?: VideoRendition;
 	// After a gap or an error the decoder can only resume at a sync sample.
 	#waitForKey = true;
+	// Why it waits: "behind" (its queue overflowed: what it drops is late, not lost).
+	#waitReason = "start";
 	decoded = 0;
+	/** Frames dropped because something before them was missing (loss, skip, error). */
 	skipped = 0;
+	/** Frames dropped because the decoder fell behind (counted as late). */
+	late = 0;
 
 	constructor(events: DecoderEvents) {
 		this.#events = events;
@@ -60,7 +75,8 @@ export class Decoder {
 				// The decoder is closed after an error: make a new one at the next keyframe.
 				this.#events.error(`decoder: ${err.message}`);
 				this.#configKey = "";
-				this.#waitForKey = true;
+				this.#wait("decoder error");
+				this.#events.needKey?.("decoder error");
 			},
 		});
 		this.#decoder.configure({
@@ -73,31 +89,60 @@ export class Decoder {
 		});
 		this.#configKey = key;
 		this.#pending = rendition;
+		this.#wait("configured");
+	}
+
+	/** Frames were lost or a group skipped: frames after the gap reference missing ones. */
+	gap(reason = "gap"): void {
+		this.#wait(reason);
+	}
+
+	#wait(reason: string): void {
+		if (!this.#waitForKey) this.#waitReason = reason;
 		this.#waitForKey = true;
 	}
 
-	/** Called when a group was skipped: frames after the gap reference missing ones. */
-	gap(): void {
-		this.#waitForKey = true;
+	/** Whether frames are being dropped until the next keyframe, and why. */
+	get waitingForKey(): boolean {
+		return this.#waitForKey;
+	}
+
+	get waitReason(): string {
+		return this.#waitReason;
+	}
+
+	/** The init segment's timescale (ticks per second), once configured. */
+	get timescale(): number | undefined {
+		return this.#init?.timescale;
+	}
+
+	/** A tfdt decode time in microseconds (the encoder's pts); undefined before the init segment. */
+	ptsUs(decodeTime: number): number | undefined {
+		const scale = this.#init?.timescale;
+		if (!scale) return undefined;
+		return scale === 1_000_000 ? decodeTime : Math.round((decodeTime * 1_000_000) / scale);
 	}
 
 	/**
 	 * Decode one moof+mdat. Returns the sample timestamps (us) handed to the decoder,
-	 * so the caller can stamp their receive time; empty when skipped.
+	 * so the caller can stamp their receive time (empty when skipped), and whether a
+	 * keyframe was among them. A decoder that closed itself on an error is rebuilt here.
 	 */
-	decode(fragment: Uint8Array): number[] {
+	decode(fragment: Uint8Array): Decoded {
 		if (this.#decoder?.state !== "configured" && this.#pending) this.configure(this.#pending);
 		const decoder = this.#decoder;
 		const init = this.#init;
-		if (!decoder || !init || decoder.state !== "configured") return [];
-		const out: number[] = [];
+		const out: Decoded = { timestamps: [], keyframe: false };
+		if (!decoder || !init || decoder.state !== "configured") return out;
 		for (const sample of Cmaf.decodeDataSegment(fragment, init)) {
-			if (!sample.keyframe && decoder.decodeQueueSize > MAX_DECODE_QUEUE) this.#waitForKey = true;
+			if (!sample.keyframe && decoder.decodeQueueSize > MAX_DECODE_QUEUE) this.#wait("behind");
 			if (this.#waitForKey && !sample.keyframe) {
-				this.skipped++;
+				if (this.#waitReason === "behind") this.late++;
+				else this.skipped++;
 				continue;
 			}
 			this.#waitForKey = false;
+			if (sample.keyframe) out.keyframe = true;
 			decoder.decode(
 				new EncodedVideoChunk({
 					type: sample.keyframe ? "key" : "delta",
@@ -106,7 +151,7 @@ export class Decoder {
 					data: sample.data,
 				}),
 			);
-			out.push(sample.timestamp);
+			out.timestamps.push(sample.timestamp);
 		}
 		return out;
 	}
@@ -124,6 +169,6 @@ export class Decoder {
 		this.#close();
 		this.#configKey = "";
 		this.#pending = undefined;
-		this.#waitForKey = true;
+		this.#wait("closed");
 	}
 }

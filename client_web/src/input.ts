@@ -4,6 +4,7 @@
 // game session announces interest in `<broadcast>/input/` and subscribes each viewer.
 import * as Moq from "@moq/lite";
 import { wallMs } from "./clock";
+import type { FeedbackBody } from "./feedback";
 import { PlayerFocus } from "./focus";
 import { type GamepadState, GamepadPoller } from "./gamepad";
 import { keyName, MOVEMENT_KEYS } from "./keys";
@@ -19,7 +20,9 @@ export type InputMessage =
 	| ({ type: "pointer" } & PointerState)
 	| ({ type: "gamepad" } & GamepadState)
 	| { type: "control"; upscaler?: string; scale?: number; frame_generation?: boolean; cache_policy?: string }
-	| { type: "keyframe" };
+	| { type: "keyframe" }
+	// What the page received lately (client_web/src/feedback.ts), every 250 ms.
+	| FeedbackBody;
 
 export type SentMessage = InputMessage & { seq: number; sent_ms: number };
 

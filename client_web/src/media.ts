@@ -28,6 +28,25 @@ export interface MediaEvents {
 	audio?(payload: Uint8Array): void;
 	/** Counting only: groups never received, or abandoned unfinished for a newer one. */
 	groupSkipped(count: number): void;
+	/**
+	 * A video group ended before its end: reset by the relay (it skips a viewer whose
+	 * oldest unsent frame is older than its max latency), abandoned for a newer group,
+	 * or dropped by a test fault. Also counted by groupSkipped. The frames after it
+	 * need a keyframe, and the next group may only start at one the player asks for;
+	 * `newerWaiting`: a newer group (which starts at a keyframe) is already here.
+	 */
+	groupEnded?(why: string, newerWaiting: boolean): void;
+}
+
+/**
+ * Test faults (window.upcast.faults): the page acts as if the network had lost what
+ * it throws away here, so the end-to-end tests can check recovery without a lossy link.
+ */
+export interface VideoFaults {
+	/** Groups to cut short at their next frame (as a relay reset would). */
+	dropGroups: number;
+	/** Until this performance.now(), every video frame is thrown away (a blackout). */
+	blackoutUntilMs: number;
 }
 
 export class MediaSubscription {
@@ -41,8 +60,11 @@ export class MediaSubscription {
 	/** Resolves with why the subscription ended. */
 	readonly done: Promise<string>;
 
-	constructor(connection: Moq.Connection.Established, name: Moq.Path.Valid, events: MediaEvents) {
+	readonly #faults?: VideoFaults;
+
+	constructor(connection: Moq.Connection.Established, name: Moq.Path.Valid, events: MediaEvents, faults?: VideoFaults) {
 		this.#events = events;
+		this.#faults = faults;
 		this.#broadcast = connection.consume(name);
 		const catalog = this.#broadcast.subscribe(CATALOG_TRACK, PRIORITY.catalog);
 		const timing = this.#broadcast.subscribe(TIMING_TRACK, PRIORITY.timing);
@@ -159,19 +181,48 @@ export class MediaSubscription {
 			if (this.#stopped) return;
 			const frame = group.state.frames.peek().shift();
 			if (frame) {
+				const fault = this.#fault();
+				if (fault) {
+					this.#endEarly(group, fault);
+					return;
+				}
 				this.#events.video(frame, gap && first);
 				first = false;
 				continue;
 			}
 			const closed = group.state.closed.peek();
-			if (closed) return; // FIN (true) or reset (Error): either way the group is over.
+			if (closed instanceof Error) {
+				// Reset: the relay skipped us past the rest of this group.
+				if (!this.#stopped && !track.state.closed.peek()) {
+					this.#events.groupSkipped(1);
+					this.#events.groupEnded?.(`group ${group.sequence} reset: ${closed.message}`, track.state.groups.peek().length > 0);
+				}
+				return;
+			}
+			if (closed) return; // FIN: the group is complete.
 			if (track.state.groups.peek().length > 0 || track.state.closed.peek()) {
-				this.#events.groupSkipped(1);
-				group.close();
+				this.#endEarly(group, `group ${group.sequence} left for a newer one`, !track.state.closed.peek());
 				return;
 			}
 			await Signal.race(group.state.frames, group.state.closed, track.state.groups, track.state.closed);
 		}
+	}
+
+	#endEarly(group: Moq.Group, why: string, newerWaiting = false): void {
+		this.#events.groupSkipped(1);
+		group.close();
+		this.#events.groupEnded?.(why, newerWaiting);
+	}
+
+	#fault(): string | undefined {
+		const faults = this.#faults;
+		if (!faults) return undefined;
+		if (performance.now() < faults.blackoutUntilMs) return "blackout (test fault)";
+		if (faults.dropGroups > 0) {
+			faults.dropGroups--;
+			return "group dropped (test fault)";
+		}
+		return undefined;
 	}
 }
 

@@ -37,7 +37,9 @@ export class Overlay {
 			`${s.status}${s.connected ? ` (${s.version})` : ""}`,
 			`fps ${s.fps}  ${s.width}x${s.height}  ${s.codec ?? "-"}  predicted ${Math.round(s.predictedShare * 100)}%`,
 			`frames recv ${s.framesReceived}  dec ${s.framesDecoded}  shown ${s.framesPresented}  dropped ${s.dropped}`,
-			`lost ${s.framesLost}  groups left early ${s.groupsSkipped}  frame id ${s.lastPresentedFrameId ?? "-"}  inputs ${s.inputsSent}`,
+			`lost ${s.framesLost}  skipped groups ${s.groupsSkipped}  late ${s.late}  freezes ${s.freezes} (${(s.freezeMs / 1000).toFixed(1)} s)`,
+			`keyframes asked ${s.recovery.keyframeRequests}${s.recovery.waiting ? ` (waiting: ${s.recovery.reason})` : ""}  recovered ${s.recovery.recoveries}${s.recovery.lastRecoveryMs === undefined ? "" : ` last ${s.recovery.lastRecoveryMs.toFixed(0)} ms`}`,
+			`frame id ${s.lastPresentedFrameId ?? "-"}  inputs ${s.inputsSent}  feedback ${s.feedbackSent}  recv ${(s.bytesReceived / 1e6).toFixed(1)} MB`,
 			s.audio.enabled
 				? `audio ${s.audio.running ? (s.audio.muted ? "muted" : `on ${Math.round(s.audio.volume * 100)}%`) : "click to start"}  packets ${s.audio.packets}  buffered ${s.audio.bufferedMs.toFixed(0)} ms  underrun ${s.audio.underrunFrames}`
 				: "audio -",

@@ -10,11 +10,14 @@ import { readConfig } from "./config";
 import { Announcement, type Status, keepConnected, sleep } from "./connection";
 import { mountControls } from "./controls";
 import { Decoder } from "./decoder";
+import { FEEDBACK_INTERVAL_MS, ReceiveStats } from "./feedback";
+import { readFragmentHeader } from "./fragment";
 import { InputCapture, InputPublisher } from "./input";
-import { errorText, MediaSubscription } from "./media";
+import { errorText, MediaSubscription, type VideoFaults } from "./media";
 import { Overlay } from "./overlay";
 import { Renderer } from "./renderer";
 import { SYNC_MS, VideoHold } from "./video_hold";
+import { KeyframeRecovery } from "./recovery";
 import { FpsMeter, StageLatency, type Stats } from "./stats";
 import { InputToPhoton, TimingJoin } from "./timing";
 
@@ -36,7 +39,7 @@ function main(): void {
 		version: undefined as string | undefined,
 		subscribed: false,
 		framesReceived: 0,
-		groupsSkipped: 0,
+		feedbackSent: 0,
 		codec: undefined as string | undefined,
 		lastPresentedFrameId: undefined as number | undefined,
 		lastPresentedPtsUs: undefined as number | undefined,
@@ -70,9 +73,16 @@ function main(): void {
 		mountAudioControls(document.getElementById("bar") as HTMLElement, audio);
 	}
 
+	// What arrives on the video track, counted from the track itself (feedback.ts), and
+	// the keyframe requests that get the picture going again after a loss (recovery.ts).
+	const receive = new ReceiveStats();
+	const recovery = new KeyframeRecovery();
+	const faults: VideoFaults = { dropGroups: 0, blackoutUntilMs: 0 };
+
 	const renderer = new Renderer(canvas);
 	renderer.onPresent = ({ ptsUs }) => {
 		const perf = performance.now();
+		receive.shown(ptsUs, perf);
 		if (audio && audioEnabled) {
 			audio.videoPresented(ptsUs, perf);
 			// A/V offset: the audio heard now minus the picture shown now (+: audio ahead).
@@ -100,6 +110,7 @@ function main(): void {
 			hold.add(frame, audio && audioEnabled ? audio.videoWaitMs(frame.timestamp, SYNC_MS) : undefined);
 		},
 		error,
+		needKey: (reason) => needKeyframe(reason),
 	});
 
 	const publisher = new InputPublisher(config.broadcast);
@@ -120,13 +131,55 @@ function main(): void {
 		capture.onPress = (seq, sentMs) => inputToPhoton.press(seq, sentMs);
 	}
 
+	// Keyframe requests go out on the input track, like the page's button; a page
+	// without a token cannot send them and waits for the next keyframe the encoder makes.
+	let recoveryTimer: ReturnType<typeof setTimeout> | undefined;
+	const pumpRecovery = (): void => {
+		const now = performance.now();
+		if (recovery.poll(now)) {
+			if (!viewOnly) publisher.send({ type: "keyframe" });
+			console.info(`upcast: keyframe requested (${recovery.reason}, waiting ${recovery.waitedMs(now).toFixed(0)} ms)`);
+		}
+		clearTimeout(recoveryTimer);
+		const wait = recovery.wakeIn(now);
+		recoveryTimer = wait === undefined ? undefined : setTimeout(pumpRecovery, wait);
+	};
+	function needKeyframe(reason: string): void {
+		recovery.need(performance.now(), reason);
+		pumpRecovery();
+	}
+
+	// Frames the page threw away for being behind: the renderer's newest-wins drops and
+	// the decoder's queue overflows.
+	const droppedLate = (): number => renderer.dropped + decoder.late;
+	setInterval(() => {
+		// Only while playing, and only when the session listens: frames wait otherwise.
+		if (viewOnly || !state.subscribed || publisher.subscribers === 0) return;
+		publisher.send(receive.report(true, droppedLate()));
+		state.feedbackSent++;
+	}, FEEDBACK_INTERVAL_MS);
+
 	const stats = (): Stats => ({
 		...state,
 		fps: fps.fps(wallMs()),
 		framesDecoded: decoder.decoded,
 		framesPresented: renderer.presented,
 		dropped: renderer.dropped,
-		framesLost: timing.lost,
+		framesLost: receive.lost,
+		groupsSkipped: receive.skipped,
+		freezes: receive.freezes,
+		freezeMs: receive.freezeMs,
+		longestFreezeMs: receive.longestGapMs,
+		late: droppedLate() + receive.shownLate,
+		bytesReceived: receive.bytes,
+		timingGaps: timing.lost,
+		recovery: {
+			waiting: recovery.waiting,
+			reason: recovery.reason,
+			keyframeRequests: recovery.requests,
+			recoveries: recovery.recoveries,
+			lastRecoveryMs: recovery.lastRecoveryMs,
+		},
 		skippedUndecodable: decoder.skipped,
 		width: renderer.width,
 		height: renderer.height,
@@ -175,6 +228,15 @@ function main(): void {
 		audioOutput: () => audio?.output ?? null,
 		/** Send an input message by hand (tests); returns it with seq and sent_ms. */
 		send: (message: Parameters<InputPublisher["send"]>[0]) => publisher.send(message),
+		/** Test faults: `dropGroup()` cuts the current video group short, `blackout(ms)` throws every video frame away for ms. */
+		faults: {
+			dropGroup: (count = 1) => {
+				faults.dropGroups += count;
+			},
+			blackout: (ms: number) => {
+				faults.blackoutUntilMs = performance.now() + ms;
+			},
+		},
 	};
 
 	if (!window.isSecureContext || typeof WebTransport === "undefined" || !Decoder.supported()) {
@@ -214,6 +276,9 @@ function main(): void {
 				continue;
 			}
 			const generation = announcement.generation;
+			// The relay starts a subscription at its newest group, at a keyframe.
+			receive.restart();
+			recovery.reset();
 			const subscription = new MediaSubscription(connection, name, {
 				catalog: (rendition) => {
 					state.codec = rendition.codec;
@@ -226,13 +291,21 @@ function main(): void {
 				video: (fragment, gap) => {
 					state.framesReceived++;
 					const now = wallUs();
-					if (gap) decoder.gap();
+					const arrival = performance.now();
+					const header = readFragmentHeader(fragment);
+					const ptsUs = header ? decoder.ptsUs(header.decodeTime) : undefined;
+					const lost = receive.fragment(header?.sequence, ptsUs, fragment.byteLength, arrival);
+					if (gap || lost > 0) decoder.gap(gap ? "group skipped" : `${lost} frame(s) lost`);
 					try {
-						for (const ptsUs of decoder.decode(fragment)) timing.stamp(ptsUs, "receive", now);
+						const decoded = decoder.decode(fragment);
+						for (const pts of decoded.timestamps) timing.stamp(pts, "receive", now);
+						if (decoded.keyframe) recovery.keyframe(performance.now());
 					} catch (err) {
 						error(`decode: ${errorText(err)}`);
-						decoder.gap();
+						decoder.gap("decode error");
 					}
+					// A frame the decoder cannot use: ask for the keyframe it waits for.
+					if (decoder.waitingForKey) needKeyframe(decoder.waitReason);
 				},
 				timing: (record) => {
 					const kind = (record as { kind?: string }).kind;
@@ -255,10 +328,13 @@ function main(): void {
 						error(`audio: ${errorText(err)}`);
 					}
 				},
-				groupSkipped: (count) => {
-					state.groupsSkipped += count;
+				groupSkipped: (count) => receive.groupsSkipped(count),
+				groupEnded: (why, newerWaiting) => {
+					decoder.gap("group ended early");
+					// The next group may only start at a keyframe nobody asked for yet.
+					if (!newerWaiting) needKeyframe(why);
 				},
-			});
+			}, faults);
 			state.subscribed = true;
 			setStatus("subscribed", config.broadcast);
 			console.info("upcast: subscribed to", config.broadcast);
@@ -280,7 +356,8 @@ function main(): void {
 			ended = true; // lets the announce watcher above finish at the next change
 			subscription.stop();
 			state.subscribed = false;
-			decoder.gap();
+			decoder.gap("resubscribe");
+			recovery.reset();
 			renderer.clear();
 			audio?.reset();
 			console.warn("upcast: subscription ended:", why);

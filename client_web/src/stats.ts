@@ -111,11 +111,26 @@ export interface Stats {
 	framesDecoded: number;
 	framesPresented: number;
 	dropped: number;
-	/** Frames published by the server that never arrived (gaps in the timing counter). */
+	/** Video frames that never arrived: jumps in the fragments' mfhd sequence numbers. */
 	framesLost: number;
+	/** Frames received but dropped because an earlier one was missing (waiting for a keyframe). */
 	skippedUndecodable: number;
-	/** Groups left when a newer one arrived (frames may all have been read: see framesLost). */
+	/** Video groups never received (gaps in the group sequence) or ended early (reset by the relay, abandoned). */
 	groupsSkipped: number;
+	/** Gaps of more than 200 ms between two frames on screen: how many, their total and the longest gap (ms). */
+	freezes: number;
+	freezeMs: number;
+	longestFreezeMs: number;
+	/** Frames dropped for being behind (renderer, decoder queue) or shown > 100 ms after arriving. */
+	late: number;
+	/** Video bytes received. */
+	bytesReceived: number;
+	/** Gaps in the timing track's publish counter (the timing track is rarely skipped: not a loss measure). */
+	timingGaps: number;
+	/** Keyframe recovery: waiting now (and why), requests sent, waits ended by a keyframe, the last one's ms. */
+	recovery: { waiting: boolean; reason?: string; keyframeRequests: number; recoveries: number; lastRecoveryMs?: number };
+	/** Feedback messages sent on the input track. */
+	feedbackSent: number;
 	width: number;
 	height: number;
 	codec?: string;
@@ -129,7 +144,7 @@ export interface Stats {
 	/** Per stage, in ms: render ... publish (server), network, decode, present, total. */
 	latency: Summary;
 	/** The audio path: packets received, decoded, what the worklet holds and misses. */
-	audio: { enabled: boolean; running: boolean; muted: boolean; volume: number; packets: number; decoded: number; bufferedMs: number; underrunFrames: number; sync?: ReturnType<import("./audio").AudioPlayer["syncParts"]> };
+	audio: { enabled: boolean; running: boolean; muted: boolean; volume: number; packets: number; decoded: number; bufferedMs: number; underrunFrames: number; sync?: ReturnType<import("./audio").AudioPlayer["syncParts"]>; videoHeld: number; videoHeldMeanMs: number };
 	/** Key press -> first frame showing it, ms. */
 	inputToPhoton: { p50?: number; p95?: number; samples: number[] };
 	errors: string[];

@@ -1,0 +1,238 @@
+"""The player reports what it receives, counts honestly and recovers by itself (issue 21).
+
+Against the live stack (relay process, game, session) and headless Chromium:
+- the page sends a ``feedback`` message on its input track every 250 ms; the session
+  receives them (the broadcast's input callback is wrapped here: the router ignores
+  them for now) and they validate against server/session/viewer_input.py;
+- when a video group ends early (the page's fault hook cuts it short, as the relay's
+  reset of a late viewer's group does) the page counts the skipped group and the lost
+  frames (mfhd jumps), asks for a keyframe by itself and shows frames again in well
+  under the 2 s periodic keyframe interval;
+- after 3 s in which every video frame is thrown away (a blackout) it asks again
+  until a keyframe comes, and plays on without a reload or a reconnect.
+
+The counters' and the recovery's logic alone (client_web/src/feedback.ts, recovery.ts,
+fragment.ts) is checked in node first, on fragments server/media/cmaf.py wrote.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import os
+import subprocess
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from server.media.cmaf import media_fragment
+from server.session.viewer_input import FeedbackMessage, KeyframeMessage, parse_viewer_message
+from tests.e2e.conftest import Live, needs, open_player, start_live, stats
+
+CLIENT = Path(__file__).resolve().parents[2] / "client_web"
+CLIENT_MODULES = CLIENT / "node_modules"
+E2E = [*needs("index.html"), pytest.mark.timeout(180)]
+
+
+def e2e(test: Any) -> Any:
+    """Marks of a test that needs Chromium and the built client (the node check does not)."""
+    for mark in E2E:
+        test = mark(test)
+    return test
+
+
+class InputTap:
+    """Wraps the broadcast's input callback: keeps every viewer message it passes on."""
+
+    def __init__(self, broadcast: Any) -> None:
+        self._inner = broadcast._on_input
+        self._lock = threading.Lock()
+        self.messages: list[tuple[float, str, Any]] = []  # (monotonic s, source, parsed)
+        broadcast._on_input = self
+
+    def __call__(self, source: str, payload: bytes) -> None:
+        message: Any
+        try:
+            message = parse_viewer_message(payload)
+        except Exception as exc:  # the router refuses it too; keep it for the assertion
+            message = exc
+        with self._lock:
+            self.messages.append((time.monotonic(), source, message))
+        self._inner(source, payload)
+
+    def of(self, kind: type, since: float = 0.0) -> list[tuple[float, str, Any]]:
+        with self._lock:
+            return [m for m in self.messages if isinstance(m[2], kind) and m[0] >= since]
+
+    def refused(self) -> list[Any]:
+        with self._lock:
+            return [m for _, _, m in self.messages if isinstance(m, Exception)]
+
+
+@pytest.fixture(scope="module")
+def live() -> Iterator[tuple[Live, InputTap]]:
+    with start_live("default") as live:
+        session = live.stack.session
+        assert session is not None
+        yield live, InputTap(session.broadcast)
+
+
+@pytest.fixture()
+def page(live: tuple[Live, InputTap], browser: Any) -> Iterator[Any]:
+    page = open_player(browser, live[0].player_url(), frames=10)
+    try:
+        # The session subscribes to the page's input broadcast shortly after it connects.
+        page.wait_for_function("() => window.upcast.stats().feedbackSent >= 2", timeout=15_000)
+        yield page
+    finally:
+        page.close()
+
+
+def test_counters_and_recovery_logic_in_node(tmp_path: Path) -> None:
+    if not (CLIENT_MODULES / ".bin" / "esbuild").exists():
+        pytest.skip("client_web/node_modules missing: npm ci in client_web")
+    fragments = [(7, 2**33 + 5, True), (1, 0, False), (123456, 33_333, False)]
+    args = []
+    for i, (sequence, decode_time, key) in enumerate(fragments):
+        path = tmp_path / f"f{i}.m4s"
+        path.write_bytes(media_fragment(sequence, decode_time, 33_333, b"\0\0\0\1\x65", key))
+        args.append(f"{path}:{sequence}:{decode_time}")
+    bundle = tmp_path / "check.mjs"
+    subprocess.run(
+        [str(CLIENT_MODULES / ".bin" / "esbuild"), str(CLIENT / "test" / "feedback_check.ts"),
+         "--bundle", "--platform=node", "--format=esm", f"--outfile={bundle}",
+         "--log-level=error"],
+        check=True, env={**os.environ, "NODE_PATH": str(CLIENT_MODULES)},
+    )  # fmt: skip
+    out = subprocess.run(["node", str(bundle), *args], check=True, capture_output=True, text=True)
+    assert json.loads(out.stdout) == {"failures": []}
+
+
+def _feedback(tap: InputTap, since: float = 0.0) -> list[FeedbackMessage]:
+    return [m for _, _, m in tap.of(FeedbackMessage, since)]
+
+
+@e2e
+def test_page_sends_feedback(live: tuple[Live, InputTap], page: Any) -> None:
+    _, tap = live
+    t0 = time.monotonic()
+    page.wait_for_timeout(1500)
+    got = _feedback(tap, t0)
+    s = stats(page)
+    print("feedback:", len(got), "last:", got[-1].model_dump() if got else None)
+    # Every 250 ms: about 6 in 1.5 s (a loaded machine may delay a timer or two).
+    assert 4 <= len(got) <= 8, len(got)
+    assert not tap.refused()
+    assert all(m.player for m in got)
+    seqs = [m.seq for m in got]
+    assert seqs == sorted(seqs)
+    frames = [f for m in got for f in m.frames]
+    # 30 fps target (15-30 on a loaded machine): each frame reported once, in order.
+    assert len(frames) >= 10, len(frames)
+    pts = [p for p, _ in frames]
+    arrivals = [a for _, a in frames]
+    assert pts == sorted(set(pts)), "each frame reported once, in order"
+    assert arrivals == sorted(arrivals)
+    # pts in microseconds (the encoder's capture clock): ~1.5 s of them, frames apart.
+    assert min(b - a for a, b in itertools.pairwise(pts)) > 10_000
+    assert 0.7e6 < pts[-1] - pts[0] < 2.5e6, (pts[0], pts[-1])
+    # Counters are cumulative and match the page's own.
+    last = got[-1]
+    assert last.bytes > 0 and last.bytes <= s["bytesReceived"]
+    assert last.lost <= s["framesLost"] and last.skipped <= s["groupsSkipped"]
+    assert [m.bytes for m in got] == sorted(m.bytes for m in got)
+    assert s["feedbackSent"] >= len(got)
+
+
+def _recovered(page: Any, before: dict[str, Any], timeout_ms: float) -> dict[str, Any]:
+    page.wait_for_function(
+        "n => window.upcast.stats().recovery.recoveries > n",
+        arg=before["recovery"]["recoveries"],
+        timeout=timeout_ms,
+    )
+    return stats(page)
+
+
+@e2e
+def test_skipped_group_counted_and_recovered_by_a_keyframe_request(
+    live: tuple[Live, InputTap], page: Any
+) -> None:
+    stack, tap = live
+    session = stack.stack.session
+    assert session is not None
+    forced = session.encoder.forced_keyframes
+    before = stats(page)
+    t0 = time.monotonic()
+    page.evaluate("() => window.upcast.faults.dropGroup()")
+    after = _recovered(page, before, 5000)
+    presented = after["framesPresented"]
+    page.wait_for_function("n => window.upcast.stats().framesPresented >= n + 10", arg=presented)
+    end = stats(page)
+    requests = tap.of(KeyframeMessage, t0)
+    summary = {
+        "recovery_ms": after["recovery"]["lastRecoveryMs"],
+        "reason": after["recovery"]["reason"],
+        "requests": after["recovery"]["keyframeRequests"] - before["recovery"]["keyframeRequests"],
+        "skipped": end["groupsSkipped"] - before["groupsSkipped"],
+        "lost": end["framesLost"] - before["framesLost"],
+        "forced_idr": session.encoder.forced_keyframes - forced,
+        "longest_freeze_ms": end["longestFreezeMs"],
+        "status": end["status"],
+    }
+    print("skip:", json.dumps(summary))
+    assert summary["skipped"] >= 1
+    assert summary["lost"] >= 1  # the rest of the group never arrived: a jump in mfhd
+    assert summary["requests"] >= 1 and requests, "the page asked for a keyframe itself"
+    assert summary["forced_idr"] >= 1
+    # Frames again well before the next periodic keyframe (2 s) could have come.
+    assert summary["recovery_ms"] < 1000, summary
+    assert end["status"].startswith("subscribed")
+    # The session heard of it through the feedback too.
+    page.wait_for_timeout(400)
+    last = _feedback(tap)[-1]
+    assert last.skipped >= end["groupsSkipped"] and last.lost >= end["framesLost"], last
+
+
+@e2e
+def test_three_seconds_of_total_loss_recovers_without_reload(
+    live: tuple[Live, InputTap], page: Any
+) -> None:
+    _, tap = live
+    before = stats(page)
+    t0 = time.monotonic()
+    page.evaluate("() => window.upcast.faults.blackout(3000)")
+    t_end = time.monotonic() + 3.0
+    page.wait_for_timeout(3000)
+    presented_at_end = stats(page)["framesPresented"]
+    page.wait_for_function(
+        "n => window.upcast.stats().framesPresented >= n + 5", arg=presented_at_end, timeout=5000
+    )
+    back_s = time.monotonic() - t_end
+    end = stats(page)
+    summary = {
+        "frames_again_after_s": round(back_s, 2),
+        "requests": end["recovery"]["keyframeRequests"] - before["recovery"]["keyframeRequests"],
+        "recovery_ms": end["recovery"]["lastRecoveryMs"],
+        "freezes": end["freezes"] - before["freezes"],
+        "freeze_ms": end["freezeMs"] - before["freezeMs"],
+        "skipped": end["groupsSkipped"] - before["groupsSkipped"],
+        "lost": end["framesLost"] - before["framesLost"],
+        "status": end["status"],
+        "version": [before["version"], end["version"]],
+    }
+    print("blackout:", json.dumps(summary))
+    # Asked at once and again while nothing came (the asked keyframes fell in the blackout).
+    assert summary["requests"] >= 3, summary
+    assert len(tap.of(KeyframeMessage, t0)) >= 3  # and the session got them
+    # The retry after the blackout: frames within about a second of its end.
+    assert back_s < 1.6, summary
+    assert end["recovery"]["recoveries"] > before["recovery"]["recoveries"]
+    assert summary["freezes"] >= 1 and summary["freeze_ms"] >= 2900, summary
+    assert summary["lost"] >= 60, summary  # 3 s at 30 fps
+    # The same connection and subscription: no reload, no reconnect.
+    assert end["status"].startswith("subscribed") and before["version"] == end["version"]
+    assert not [e for e in end["errors"] if "decoder" in e], end["errors"]
