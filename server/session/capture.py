@@ -34,6 +34,7 @@ READ_TIMEOUT_S = 0.2
 class CaptureStats:
     frames: int = 0
     skipped: int = 0  # frames the worker wrote that we never encoded (newest-only reads)
+    thinned: int = 0  # frames left out on purpose: the link cannot carry the full rate
     errors: int = 0
 
 
@@ -54,9 +55,12 @@ class CaptureThread:
         *,
         pts_origin_ns: int | None = None,
         frame_tap: Callable[[int, npt.NDArray[np.uint8]], None] | None = None,
+        keep_every: Callable[[], int] | None = None,
     ) -> None:
         """``frame_tap(frame_id, color)`` sees each encoded frame's pixels (a read-only
-        view, valid only during the call): tests compare them with what a browser shows."""
+        view, valid only during the call): tests compare them with what a browser shows.
+        ``keep_every()``: encode one frame in this many (the rate control lowers the
+        frame rate when the bitrate alone cannot hold it); read before each frame."""
         self.ring = ring
         self.encoder = encoder
         self.stats = CaptureStats()
@@ -65,6 +69,8 @@ class CaptureThread:
         self._pts_origin_ns = pts_origin_ns
         self._last_seq = 0
         self._frame_tap = frame_tap
+        self._keep_every = keep_every
+        self._counter = 0
         self._thread = threading.Thread(target=self._run, name="capture-encode", daemon=True)
 
     def start(self) -> None:
@@ -101,6 +107,10 @@ class CaptureThread:
             if self._last_seq and lease.seq > self._last_seq + 1:
                 self.stats.skipped += lease.seq - self._last_seq - 1
             self._last_seq = lease.seq
+            self._counter += 1
+            if self._keep_every is not None and self._counter % max(1, self._keep_every()):
+                self.stats.thinned += 1
+                return
             frame = display_frame_of(lease)
             meta = frame.meta  # read_meta copied the header: it outlives the lease
             stamp(meta.stamps, Stage.ENCODE_START)

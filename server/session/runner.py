@@ -217,6 +217,7 @@ class StreamingSession:
             self._from_capture_thread,
             frame_tap=self._frame_tap,
             pts_origin_ns=origin,
+            keep_every=lambda: self.rate.frame_divisor,
         )
         self._capture.start()
         tasks = [

@@ -5,6 +5,13 @@ The controller (rate_control.py) is pure logic; this runs it every
 (the encoding thread applies it before its next frame), and puts the rate and
 why in the session's ``stream_state``, which rides in every timing record: the
 page's overlay and ``upcast bench network`` read it from there.
+
+When the bitrate alone cannot hold the frame rate (fewer than ``MIN_BITS_PER_PIXEL``
+bits per pixel and frame: blocks and smears), the session encodes every other
+frame instead (``frame_divisor`` 2), at twice the bits per frame, and goes back
+to every frame once the rate gives ``RESTORE_FACTOR`` times that floor. x264
+budgets bits per frame at the configured frame rate, so at divisor 2 the encoder
+is told twice the rate to spend the same bits per second.
 """
 
 from __future__ import annotations
@@ -20,6 +27,9 @@ from server.session.viewer_input import FeedbackMessage, ViewerMessage
 log = logging.getLogger(__name__)
 
 UPDATE_INTERVAL_S = 0.1
+MIN_BITS_PER_PIXEL = 0.035  # x264 ultrafast below this: visibly blocky at any size
+RESTORE_FACTOR = 1.6  # hysteresis: full frame rate again at 1.6x the floor
+MIN_THINNED_FPS = 20.0  # never halve a stream below 10 fps
 
 
 class SessionRate:
@@ -35,6 +45,10 @@ class SessionRate:
         self.enabled = enabled
         self.controller = RateController(encoder.config.target_bitrate, MIN_BITRATE)
         self._state = stream_state
+        self.frame_divisor = 1
+        cfg = encoder.config
+        self._bits_floor = MIN_BITS_PER_PIXEL * cfg.width * cfg.height * cfg.fps
+        self._rate = cfg.target_bitrate
         self._publish_state()
 
     def frame_sent(self, encoded: EncodedFrame) -> None:
@@ -53,16 +67,33 @@ class SessionRate:
     def step(self, now_s: float) -> None:
         rate = self.controller.update(now_s)
         if rate is not None and self.enabled:
-            applied = self.encoder.set_bitrate(rate)
+            self._rate = rate
+            divisor = self._divisor_for(rate)
+            if divisor != self.frame_divisor:
+                log.info(
+                    "frame rate %s: %.2f Mbit/s cannot hold %.0f fps",
+                    "halved" if divisor > 1 else "restored",
+                    rate / 1e6,
+                    self.encoder.config.fps,
+                )
+                self.frame_divisor = divisor
+            self.encoder.set_bitrate(rate * divisor)
             state = self.controller.state
             log.info(
                 "bitrate %.2f Mbit/s (%s, %d player%s)",
-                applied / 1e6,
+                rate / 1e6,
                 state.reason,
                 state.players,
                 "" if state.players == 1 else "s",
             )
         self._publish_state()
+
+    def _divisor_for(self, rate: float) -> int:
+        if self.encoder.config.fps < MIN_THINNED_FPS:
+            return 1
+        if self.frame_divisor == 1:
+            return 2 if rate < self._bits_floor else 1
+        return 1 if rate >= self._bits_floor * RESTORE_FACTOR else 2
 
     async def run(self, stop: asyncio.Event) -> None:
         while not stop.is_set():
@@ -71,7 +102,8 @@ class SessionRate:
 
     def _publish_state(self) -> None:
         state = self.controller.state
-        self._state["bitrate"] = self.encoder.bitrate
+        self._state["bitrate"] = self._rate
+        self._state["fps_divisor"] = self.frame_divisor
         self._state["rate_reason"] = state.reason if self.enabled else "fixed"
         if state.delivered_bps is not None:
             self._state["received_bps"] = round(state.delivered_bps)

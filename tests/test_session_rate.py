@@ -1,0 +1,75 @@
+"""SessionRate: the controller's decisions reach the encoder, the frame rate gives way last."""
+
+from __future__ import annotations
+
+from server.media.encode import MIN_BITRATE, EncoderConfig, VideoEncoder
+from server.session.feedback import FeedbackFields
+from server.session.session_rate import MIN_BITS_PER_PIXEL, RESTORE_FACTOR, SessionRate
+from server.session.viewer_input import FeedbackMessage, KeysMessage
+
+W, H, FPS = 320, 180, 30
+FLOOR = MIN_BITS_PER_PIXEL * W * H * FPS  # 60 kbit/s: below it, every other frame
+
+
+def make(bitrate: int = 1_000_000) -> tuple[SessionRate, dict[str, str | float | bool]]:
+    state: dict[str, str | float | bool] = {}
+    encoder = VideoEncoder(EncoderConfig(W, H, fps=FPS, bitrate=bitrate))
+    return SessionRate(encoder, state), state
+
+
+def feedback(**fields: object) -> FeedbackMessage:
+    return FeedbackMessage.model_validate({"type": "feedback", **fields})
+
+
+def test_the_configured_rate_stands_without_players_and_is_published() -> None:
+    rate, state = make()
+    rate.step(1.0)
+    assert state["bitrate"] == 1_000_000
+    assert state["rate_reason"] == "configured"
+    assert state["fps_divisor"] == 1
+
+
+def test_an_old_page_without_feedback_gets_the_safe_rate() -> None:
+    rate, state = make()
+    rate.on_message("page", KeysMessage(type="keys", down=["w"]))
+    rate.step(rate.controller._players["page"].first_seen_s + 3.5)
+    assert state["bitrate"] == 250_000
+    assert state["rate_reason"] == "no feedback"
+    assert rate.encoder.bitrate == 250_000
+
+
+def test_a_rate_too_low_for_the_frame_rate_halves_it_and_restores_it() -> None:
+    rate, state = make(bitrate=200_000)
+    controller = rate.controller
+    controller.floor = 10_000
+    # The controller decides 50 kbit/s (below the floor of 60): every other frame,
+    # and x264 (which budgets per frame at 30 fps) is told twice that.
+    controller.ceiling = 50_000
+    controller.input_seen("page", 0.0)
+    controller.feedback("page", FeedbackFields(player=True), 0.0)
+    controller._players["page"].rate = 50_000
+    rate.step(0.5)
+    assert rate.frame_divisor == 2
+    assert rate.encoder.bitrate == 100_000
+    assert state["fps_divisor"] == 2 and state["bitrate"] == 50_000
+    # Just above the floor: stays halved (hysteresis); well above: every frame again.
+    controller._players["page"].rate = FLOOR * 1.2
+    controller.feedback("page", FeedbackFields(player=True), 0.9)
+    controller.ceiling = 200_000
+    rate.step(1.0)
+    assert rate.frame_divisor == 2
+    controller._players["page"].rate = FLOOR * RESTORE_FACTOR + 1000
+    controller.feedback("page", FeedbackFields(player=True), 1.4)
+    rate.step(1.5)
+    assert rate.frame_divisor == 1
+    assert rate.encoder.bitrate == max(MIN_BITRATE, int(FLOOR * RESTORE_FACTOR + 1000))
+
+
+def test_rate_control_off_keeps_the_configured_bitrate() -> None:
+    state: dict[str, str | float | bool] = {}
+    encoder = VideoEncoder(EncoderConfig(W, H, fps=FPS, bitrate=1_000_000))
+    rate = SessionRate(encoder, state, enabled=False)
+    rate.on_message("page", feedback(player=True))
+    rate.step(10.0)
+    assert encoder.bitrate == 1_000_000
+    assert state["rate_reason"] == "fixed"
