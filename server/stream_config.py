@@ -25,6 +25,16 @@ class StreamConfig(BaseModel):
     )
     gop_seconds: float = Field(default=2.0, gt=0, le=60, description="periodic keyframe interval")
     audio: bool = Field(default=True, description="publish the game's sound (Opus track `audio`)")
+    rate_control: bool = Field(
+        default=True,
+        description="the bitrate follows the player's link (its feedback); the configured"
+        " bitrate is the ceiling. Off: the bitrate stays fixed",
+    )
+    intra_refresh: bool = Field(
+        default=True,
+        description="refresh the picture in sweeps of intra blocks instead of periodic"
+        " keyframes (no keyframe spikes on a narrow link); keyframes on demand",
+    )
     metrics_port: int | None = Field(
         default=None,
         ge=0,

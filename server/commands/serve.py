@@ -59,6 +59,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--bitrate-kbps", type=int, default=None, help="video bitrate")
     parser.add_argument("--gop-seconds", type=float, default=2.0, help="keyframe interval")
     parser.add_argument(
+        "--rate-control",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="the bitrate follows the player's link, reported by its page (default: on;"
+        " the configured bitrate is the ceiling; --no-rate-control: fixed bitrate)",
+    )
+    parser.add_argument(
+        "--intra-refresh",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="refresh the picture in sweeps of intra blocks every --gop-seconds instead of"
+        " periodic keyframes (default: on; keyframes still come on demand)",
+    )
+    parser.add_argument(
         "--auth-key", type=Path, default=None, help="JWK key that signs the sessions' tokens"
     )
     parser.add_argument(
@@ -100,6 +114,8 @@ def _sessions(args: argparse.Namespace) -> list[ServedSession] | None:
         broadcast=args.broadcast_prefix,
         bitrate_kbps=args.bitrate_kbps,
         gop_seconds=args.gop_seconds,
+        rate_control=args.rate_control,
+        intra_refresh=args.intra_refresh,
     )
     if base is None or stream is None:
         return None

@@ -37,6 +37,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=True,
         help="publish the game's sound as an Opus track (default: on; --no-audio: video only)",
     )
+    parser.add_argument(
+        "--rate-control",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="the bitrate follows the player's link, reported by its page (default: on;"
+        " the configured bitrate is the ceiling; --no-rate-control: fixed bitrate)",
+    )
+    parser.add_argument(
+        "--intra-refresh",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="refresh the picture in sweeps of intra blocks every --gop-seconds instead of"
+        " periodic keyframes (default: on; keyframes still come on demand)",
+    )
     parser.add_argument("--game-input", type=Path, default=None, help="game input socket")
     parser.add_argument("--worker-control", type=Path, default=None, help="worker control socket")
     parser.add_argument("--metrics-port", type=int, default=0, help="Prometheus port (0 = off)")
@@ -69,6 +83,8 @@ def run(args: argparse.Namespace) -> int:
         gop_seconds=args.gop_seconds,
         metrics_port=args.metrics_port,
         audio=args.audio,
+        rate_control=args.rate_control,
+        intra_refresh=args.intra_refresh,
     )
     if stream is None:
         return 2
@@ -123,6 +139,8 @@ async def _main(args: argparse.Namespace, stream: StreamConfig) -> int:
             cert_hash_hex=args.cert_sha256,
             token=args.token,
             audio=stream.audio,
+            rate_control=stream.rate_control,
+            intra_refresh=stream.intra_refresh,
         ),
         ring,
         display,

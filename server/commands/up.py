@@ -51,6 +51,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="publish the game's sound as an Opus track (default: on; --no-audio: video only)",
     )
     parser.add_argument(
+        "--rate-control",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="the bitrate follows the player's link, reported by its page (default: on;"
+        " the configured bitrate is the ceiling; --no-rate-control: fixed bitrate)",
+    )
+    parser.add_argument(
+        "--intra-refresh",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="refresh the picture in sweeps of intra blocks every --gop-seconds instead of"
+        " periodic keyframes (default: on; keyframes still come on demand)",
+    )
+    parser.add_argument(
         "--metrics-port",
         type=int,
         default=None,
@@ -121,6 +135,8 @@ def run(args: argparse.Namespace) -> int:
         gop_seconds=args.gop_seconds,
         metrics_port=args.metrics_port,
         audio=args.audio,
+        rate_control=args.rate_control,
+        intra_refresh=args.intra_refresh,
     )
     if config is None or stream is None:
         return 2

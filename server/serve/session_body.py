@@ -102,6 +102,8 @@ async def run_game_session(
             gop_seconds=stream.gop_seconds,
             cert_hash_hex=plan.cert_hash_hex,
             audio=stream.audio,
+            rate_control=stream.rate_control,
+            intra_refresh=stream.intra_refresh,
             upscaler=config.upscaler,
             source=config.source,
             gamepad=config.gamepad,
