@@ -33,7 +33,10 @@ import ipaddress
 import logging
 import socket
 import statistics
+import struct
+import sys
 import threading
+import time
 from collections import deque
 from collections.abc import Callable, Coroutine
 from dataclasses import dataclass, field
@@ -54,6 +57,12 @@ _READ_BATCH = 256  # datagrams read per wake-up, so one busy socket cannot starv
 _SOCKET_BUFFER = 4 << 20  # the kernel caps it at rmem_max/wmem_max; bursts need room
 _EARLY_S = 0.0005  # epoll waits in whole ms (rounded up): aim half a step early
 _LATENESS_SAMPLES = 20000
+# The kernel stamps each datagram on arrival (Linux's SO_TIMESTAMPNS, which Python's
+# socket module does not name): a packet read late by a busy loop still gets its delay
+# counted from when it really arrived. Elsewhere the read time stands in.
+_SO_TIMESTAMPNS = 35 if sys.platform == "linux" else None
+_TIMESPEC = struct.Struct("@qq")
+_ANCILLARY_SPACE = socket.CMSG_SPACE(_TIMESPEC.size)
 
 
 class NonLoopbackError(ValueError):
@@ -89,7 +98,20 @@ def _udp_socket(family: socket.AddressFamily) -> socket.socket:
     for option in (socket.SO_RCVBUF, socket.SO_SNDBUF):
         with contextlib.suppress(OSError):
             sock.setsockopt(socket.SOL_SOCKET, option, _SOCKET_BUFFER)
+    if _SO_TIMESTAMPNS is not None:
+        with contextlib.suppress(OSError):
+            sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
     return sock
+
+
+def _arrival(ancillary: list[tuple[int, int, bytes]], wall_minus_loop: float, now: float) -> float:
+    """The kernel's arrival stamp on the loop's clock, or ``now`` without one."""
+    for level, kind, data in ancillary:
+        if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS and len(data) >= _TIMESPEC.size:
+            seconds, nanoseconds = _TIMESPEC.unpack_from(data)
+            stamped = float(seconds) + float(nanoseconds) * 1e-9 - wall_minus_loop
+            return min(now, stamped)  # never later than now: the wall clock may have stepped
+    return now
 
 
 @dataclass(eq=False)
@@ -236,11 +258,15 @@ class NetworkEmulator:
         assert self._loop is not None, "the emulator is not started"
         return self._loop.time()
 
+    def _wall_minus_loop(self) -> float:
+        return time.time() - self._now()
+
     def _on_client_readable(self, index: int) -> None:
         listener = self._listeners[index]
+        wall_minus_loop = self._wall_minus_loop()
         for _ in range(_READ_BATCH):
             try:
-                data, address = listener.recvfrom(_MAX_DATAGRAM)
+                data, ancillary, _, address = listener.recvmsg(_MAX_DATAGRAM, _ANCILLARY_SPACE)
             except (BlockingIOError, InterruptedError):
                 return
             except OSError:
@@ -250,7 +276,8 @@ class NetworkEmulator:
             if client is None:
                 client = self._open_client(index, address, now)
             client.last_seen = now
-            decision = self.shaper.up.offer(len(data), now)
+            arrived = _arrival(ancillary, wall_minus_loop, now)
+            decision = self.shaper.up.offer(len(data), arrived)
             if decision.fate is Fate.DELIVER:
                 self._hold(decision.depart_at, client.upstream, data, None)
 
@@ -271,16 +298,17 @@ class NetworkEmulator:
         self._clients.pop(client.key, None)
 
     def _on_upstream_readable(self, client: _Client) -> None:
+        wall_minus_loop = self._wall_minus_loop()
         for _ in range(_READ_BATCH):
             try:
-                data = client.upstream.recv(_MAX_DATAGRAM)
+                data, ancillary, _, _ = client.upstream.recvmsg(_MAX_DATAGRAM, _ANCILLARY_SPACE)
             except (BlockingIOError, InterruptedError):
                 return
             except OSError:
                 continue  # ICMP port unreachable: the relay is not (yet) there
             now = self._now()
             client.last_seen = now
-            decision = self.shaper.down.offer(len(data), now)
+            decision = self.shaper.down.offer(len(data), _arrival(ancillary, wall_minus_loop, now))
             if decision.fate is Fate.DELIVER:
                 self._hold(decision.depart_at, client.listener, data, client.address)
 
