@@ -35,6 +35,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "loadtest": ("loadtest", "many moq-lite viewers against a relay: fps, loss, latency, CPU"),
     "token": ("token", "make the relay's key file (generate) and tokens signed with it (sign)"),
     "train": ("train", "train a neural upscaler (unet, unetpp) on the game's own frames"),
+    "netem": ("netem", "shape UDP between viewers and the relay: rate, delay, loss (loopback)"),
 }
 
 
