@@ -72,8 +72,10 @@ def test_a_run_shapes_and_reports() -> None:
                 assert client.recv(100) == b"ping"
                 assert time.monotonic() - start >= 0.0145
             # A line printed before the ping still says clients 0; a later one says 1.
-            progress = [proc.stdout.readline() for _ in range(20)]
-            assert any(" s step 0 clients 1 | down " in line for line in progress), progress
+            progress = []
+            while len(progress) < 20 and " clients 1 | down " not in "".join(progress[-1:]):
+                progress.append(proc.stdout.readline())
+            assert " s step 0 clients 1 | down " in progress[-1], progress
         finally:
             proc.send_signal(signal.SIGINT)
             out, _ = proc.communicate(timeout=10)
