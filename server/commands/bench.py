@@ -21,6 +21,8 @@ BENCHMARKS: dict[str, str] = {
     "capture": "X11 screen capture (Xvfb) per grabber against memcpy: ms per frame, exact pixels",
     "app": "real programs (SuperTux, Neverball) as source x11 in headless Chromium: fps, "
     "capture ms, input-to-photon, received PSNR, a screenshot",
+    "network": "the player over emulated links (lan, cable, wifi, lte, drop, blackout): "
+    "delivered fps, freezes, glass-to-glass, bitrate against capacity, received PSNR",
 }
 
 

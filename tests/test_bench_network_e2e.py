@@ -1,0 +1,54 @@
+"""``upcast bench network`` for real: 5 s of ``lan`` and 5 s of ``lte`` (4 Mbit/s)
+through the emulator in headless Chromium with one load-test viewer beside it, at
+small sizes. Checked: the report's shape (every figure is there), the page's traffic
+went through the emulator, and the shaped profile's series carries its capacity.
+Figures themselves are not judged: the machine is shared and the session's rate
+control is changing.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from server.bench.network_table import table
+from server.cli import main
+from server.ops.browser_paths import WEB_ROOT
+from tests.chromium import browser_marks
+
+pytestmark = [*browser_marks(WEB_ROOT / "index.html"), pytest.mark.timeout(300)]
+
+
+def test_short_run_reports_every_figure(tmp_path: Path) -> None:
+    report_path, plot_path = tmp_path / "network.json", tmp_path / "network.png"
+    argv = ["bench", "network", "--profile", "lan", "--profile", "lte", "--seconds", "5"]
+    argv += ["--warmup", "2", "--render-size", "160x90", "--viewers", "1"]
+    argv += ["--json", str(report_path), "--plot", str(plot_path)]
+    assert main(argv) == 0
+    report = json.loads(report_path.read_text())
+    assert {"benchmark", "machine", "config", "cases", "notes"} <= set(report)
+    assert report["benchmark"] == "network"
+    lan, lte = report["cases"]
+    assert (lan["name"], lte["name"]) == ("lan", "lte")
+    for case in (lan, lte):
+        assert case["frames_published"] > 0 and case["frames_shown"] > 0, case
+        assert 0 < case["delivered_ratio"] <= 1.2
+        assert {"count", "total_ms", "longest_ms"} <= set(case["freezes"])
+        assert case["glass_to_glass"]["count"] > 0
+        assert case["median_ms"] is not None and case["p95_ms"] >= case["median_ms"]
+        assert case["received_psnr_db"]["count"] + case["received_psnr_db"]["unknown"] > 0
+        assert case["link"]["down"]["bytes_delivered"] > 0  # the page played through it
+        series = case["series"]
+        n = len(series["t_s"])
+        assert n >= 6  # 5 s at 0.5 s
+        for key in ("bitrate_target_bps", "capacity_bps", "link_delivered_bps"):
+            assert len(series[key]) == n
+        assert any(v is not None for v in series["bitrate_target_bps"])
+        viewers = case["viewers"]
+        assert viewers["count"] == 1 and "delivery" in viewers["viewers"][0]
+    assert set(lan["series"]["capacity_bps"]) == {None}
+    assert set(lte["series"]["capacity_bps"]) == {4e6}
+    assert "lte" in table(report["cases"])
+    assert plot_path.stat().st_size > 0
