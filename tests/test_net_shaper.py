@@ -84,8 +84,8 @@ def test_reorder_lets_packets_overtake() -> None:
 
 def test_random_loss_rate() -> None:
     shaper = _down(loss=0.05)
-    _offer_evenly(shaper, 100_000, 0.0001)
-    assert shaper.counters.lost / shaper.counters.packets_in == pytest.approx(0.05, abs=0.003)
+    _offer_evenly(shaper, 50_000, 0.0001)
+    assert shaper.counters.lost / shaper.counters.packets_in == pytest.approx(0.05, abs=0.004)
 
 
 def _loss_runs(fates: list[Fate]) -> list[int]:
@@ -103,14 +103,14 @@ def test_bursty_loss_has_its_mean_rate_and_burst_length() -> None:
     chain = GilbertElliott.from_mean(0.02, 3.0)
     assert chain.mean_loss == pytest.approx(0.02)
     shaper = _down(burst_loss=chain)
-    fates = [d.fate for _, d in _offer_evenly(shaper, 300_000, 0.0001)]
-    assert fates.count(Fate.LOST) / len(fates) == pytest.approx(0.02, abs=0.002)
-    assert statistics.mean(_loss_runs(fates)) == pytest.approx(3.0, rel=0.08)
+    fates = [d.fate for _, d in _offer_evenly(shaper, 100_000, 0.0001)]
+    assert fates.count(Fate.LOST) / len(fates) == pytest.approx(0.02, abs=0.003)
+    assert statistics.mean(_loss_runs(fates)) == pytest.approx(3.0, rel=0.1)
 
 
 def test_random_loss_comes_alone() -> None:
     shaper = _down(loss=0.02)
-    fates = [d.fate for _, d in _offer_evenly(shaper, 300_000, 0.0001)]
+    fates = [d.fate for _, d in _offer_evenly(shaper, 100_000, 0.0001)]
     assert statistics.mean(_loss_runs(fates)) == pytest.approx(1.0 / 0.98, rel=0.03)
 
 
