@@ -316,6 +316,8 @@ def test_a_viewer_watches_the_relay_through_the_emulator(tmp_path: Path) -> None
                 return extra, net.stats()
 
     extra, stats = asyncio.run(scenario())
-    # 15 ms one way + 3 kB at 20 Mbit/s (1.2 ms) more than the direct viewer.
-    assert 15.5 <= statistics.median(extra) <= 20.0, extra
+    # 15 ms one way + 3 kB at 20 Mbit/s (1.2 ms) more than the direct viewer; 1-2 ms
+    # more on an idle machine, up to ~10 when relay, peers and emulator share this
+    # process's one loop on a machine at load 10 (the emulator's timer waits its turn).
+    assert 15.5 <= statistics.median(extra) <= 28.0, extra
     assert stats["clients"] == 1 and stats["down"]["lost"] == 0
