@@ -57,6 +57,7 @@ _READ_BATCH = 256  # datagrams read per wake-up, so one busy socket cannot starv
 _SOCKET_BUFFER = 4 << 20  # the kernel caps it at rmem_max/wmem_max; bursts need room
 _EARLY_S = 0.0005  # epoll waits in whole ms (rounded up): aim half a step early
 _LATENESS_SAMPLES = 20000
+_NO_IPV6 = (errno.EADDRNOTAVAIL, errno.EAFNOSUPPORT)
 # The kernel stamps each datagram on arrival (Linux's SO_TIMESTAMPNS, which Python's
 # socket module does not name): a packet read late by a busy loop still gets its delay
 # counted from when it really arrived. Elsewhere the read time stands in.
@@ -101,6 +102,16 @@ def _udp_socket(family: socket.AddressFamily) -> socket.socket:
     if _SO_TIMESTAMPNS is not None:
         with contextlib.suppress(OSError):
             sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
+    return sock
+
+
+def _bound_udp_socket(host: str, port: int) -> socket.socket:
+    sock = _udp_socket(_family(host))
+    try:
+        sock.bind((host, port))
+    except OSError:
+        sock.close()
+        raise
     return sock
 
 
@@ -164,7 +175,6 @@ class NetworkEmulator:
         self._sweeper: asyncio.TimerHandle | None = None
         self._lateness_s: deque[float] = deque(maxlen=_LATENESS_SAMPLES)
         self._send_errors = 0
-        self._started_at = 0.0
         self.port = 0
 
     # -- life cycle -------------------------------------------------------------------
@@ -178,8 +188,7 @@ class NetworkEmulator:
             self._loop.add_reader(sock.fileno(), self._on_client_readable, index)
         for sock in tcp:
             self._tcp_servers.append(await asyncio.start_server(self._pass_tcp, sock=sock))
-        self._started_at = self._loop.time()
-        self.shaper.restart_schedule(self._started_at)
+        self.shaper.restart_schedule(self._loop.time())
         self._sweeper = self._loop.call_later(self._sweep_every_s, self._sweep_idle)
         hosts = ", ".join(self._listen_hosts)
         log.info("network emulator on %s port %d -> %s", hosts, self.port, self._upstream)
@@ -193,6 +202,7 @@ class NetworkEmulator:
             if handle is not None:
                 handle.cancel()
         self._timer = self._sweeper = None
+        self._timer_at = float("inf")
         self._heap.clear()
         for client in list(self._clients.values()):
             self._close_client(client)
@@ -233,9 +243,14 @@ class NetworkEmulator:
             port = self._listen_port
             try:
                 for host in self._listen_hosts:
-                    sock = _udp_socket(_family(host))
+                    try:
+                        sock = _bound_udp_socket(host, port)
+                    except OSError as exc:
+                        if host == "::1" and udp and exc.errno in _NO_IPV6:
+                            log.warning("emulator: no IPv6 loopback here; 127.0.0.1 only")
+                            continue
+                        raise
                     udp.append(sock)
-                    sock.bind((host, port))
                     port = sock.getsockname()[1]
                     if self.tcp_passthrough:
                         server = socket.socket(_family(host), socket.SOCK_STREAM)

@@ -53,6 +53,7 @@ class DirectionCounters:
     queue_dropped: int = 0
     """Dropped because the queue was full (the sender outran the rate)."""
     delivered: int = 0
+    """Taken by the link: sent, or still in the queue or the delay line."""
     bytes_delivered: int = 0
 
     def as_dict(self) -> dict[str, int]:
