@@ -162,7 +162,8 @@ def run(args: argparse.Namespace) -> int:
 def _notes() -> list[str]:
     return [
         "delivered_ratio = frames the page presented / frames the session published, same "
-        "window; freezes: gaps > 200 ms between frames drawn on the canvas (page clock)",
+        "window (frames in flight at the window's edges can put it a little over 1); "
+        "freezes: gaps > 200 ms between frames drawn on the canvas (page clock)",
         "median_ms / p95_ms: glass-to-glass render_end -> client_present (page stats, one "
         "machine's wall clocks), as in upcast bench latency",
         "series every 0.5 s: bitrate_target_bps = the session encoder's target; capacity_bps"

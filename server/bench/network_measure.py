@@ -76,16 +76,17 @@ def measure(run: NetworkRun, browser: Any) -> dict[str, Any]:
     schedule = resolve(run.profile)
     thumbs = FrameThumbs()
     name = run.profile
-    with LiveStack(run.session, frame_tap=thumbs, bitrate=run.bitrate) as live:
-        assert live.endpoint is not None and live.session is not None
-        session = live.session
-        net = EmulatorProcess(
+    with (
+        LiveStack(run.session, frame_tap=thumbs, bitrate=run.bitrate) as live,
+        EmulatorProcess(
             listen=("localhost", 0),
             upstream=("127.0.0.1", live.port),
             schedule=schedule,
             tcp_passthrough=True,
-        )
-        net.start()
+        ) as net,
+    ):
+        assert live.endpoint is not None and live.session is not None
+        session = live.session
         spectators: SpectatorViewers | None = None
         # A context of its own per profile: closing it closes the page's TCP connections
         # through the emulator before the emulator stops.
@@ -167,7 +168,6 @@ def measure(run: NetworkRun, browser: Any) -> dict[str, Any]:
             link_end = net.stats()
         finally:
             context.close()
-            net.stop()
         viewers = spectators.finish() if spectators is not None else []
     presented = end["framesPresented"] - first["framesPresented"]
     late = link_end["release_late_ms"].get("p99")
