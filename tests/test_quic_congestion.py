@@ -16,7 +16,8 @@ from aioquic.quic.rangeset import RangeSet
 from aioquic.quic.recovery import QuicPacketRecovery, QuicPacketSpace
 from aioquic.tls import Epoch
 
-from server.quic.congestion_media import NAME, MediaCongestionControl, algorithm_names
+from server.quic.congestion_media import ACK_ALLOWANCE_S, NAME, MediaCongestionControl
+from server.quic.congestion_register import algorithm_names
 
 MSS = 1280
 MBIT = 1e6 / 8  # bytes per second
@@ -247,7 +248,7 @@ def test_app_limited_neither_inflates_nor_collapses() -> None:
     window = sim.recovery.congestion_window
     # measured from bursts, so never above the link; the window follows the estimate
     assert estimate <= 20 * MBIT * 1.05
-    assert window <= 2.5 * estimate * (sim.media.min_rtt + 0.010)
+    assert window <= 2.5 * estimate * (sim.media.min_rtt + ACK_ALLOWANCE_S)
     sim.run(5.9)
     assert sim.media.bandwidth >= 0.9 * estimate, "the idle period collapsed the estimate"
     assert sim.recovery.congestion_window >= 0.9 * window
@@ -302,3 +303,22 @@ def test_app_limited_samples_do_not_lower_the_estimate() -> None:
         cc.on_rtt_measurement(now=t + 0.030, rtt=0.030)
         t += 0.1
     assert cc.bandwidth == measured
+
+
+def test_relay_setting_defaults_to_media_and_accepts_reno_cubic() -> None:
+    from pydantic import ValidationError
+
+    from server.quic.certs import generate_cert
+    from server.quic.server import server_configuration
+    from server.relay.settings import RelaySettings
+
+    assert RelaySettings(no_auth=True).congestion_control == NAME
+    for name in ("reno", "cubic"):
+        assert RelaySettings(no_auth=True, congestion_control=name).congestion_control == name
+    with pytest.raises(ValidationError, match=r"(?s)congestion_control.*allowed: upcast-media"):
+        RelaySettings(no_auth=True, congestion_control="bbr9")
+    cert = generate_cert()
+    assert server_configuration(cert).congestion_control_algorithm == NAME
+    assert server_configuration(cert, congestion_control="reno").congestion_control_algorithm == (
+        "reno"
+    )

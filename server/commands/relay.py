@@ -104,6 +104,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="seconds a connection has to get its WebTransport CONNECT accepted"
         " (default: %(default)s)",
     )
+    parser.add_argument(
+        "--congestion-control",
+        default="upcast-media",
+        help="QUIC congestion controller: upcast-media (holds the rate under random loss),"
+        " reno or cubic (default: %(default)s)",
+    )
     parser.add_argument("--duration", type=float, default=None, help="stop after SECONDS")
     parser.add_argument("--ready-file", type=Path, default=None, help=argparse.SUPPRESS)
 
@@ -159,7 +165,10 @@ async def _main(args: argparse.Namespace, settings: RelaySettings, auth: Authori
 async def _serve(
     args: argparse.Namespace, settings: RelaySettings, auth: Authorizer, cert: CertBundle
 ) -> int:
+    from server.quic.congestion_register import set_default_algorithm
     from server.relay.relay import Relay, RelayConfig
+
+    set_default_algorithm(settings.congestion_control)  # every QUIC connection of this relay
 
     web_root = settings.web_root
     if web_root is None and (WEB_ROOT / "index.html").is_file():

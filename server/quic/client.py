@@ -28,6 +28,7 @@ from server.ops.redact import redact_url
 
 from . import codes, sf
 from .certs import der_sha256_hex
+from .congestion_register import default_algorithm
 from .connection import IDLE_TIMEOUT_S, WtConnection, decode_headers
 from .http_fetch import fetch_cert_hash
 from .server import grow_buffers
@@ -128,6 +129,7 @@ async def connect(
     verify: bool = True,
     origin: str | None = None,
     timeout: float = 10.0,
+    congestion_control: str | None = None,
 ) -> tuple[WtSession, str | None]:
     """Open a WebTransport session to `url` and attach `factory(session, request)`.
 
@@ -147,6 +149,8 @@ async def connect(
         max_datagram_frame_size=65536,
         server_name=host,
         idle_timeout=IDLE_TIMEOUT_S,  # a vanished relay is noticed in seconds, not a minute
+        # publishers and load-test viewers send media too: same controller as the relay
+        congestion_control_algorithm=congestion_control or default_algorithm(),
     )
     if cert_hash_hex is not None or not verify:
         config.verify_mode = ssl.CERT_NONE

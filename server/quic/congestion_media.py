@@ -60,8 +60,6 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
 
-import aioquic.quic.recovery  # noqa: F401  (registers aioquic's own "reno" and "cubic")
-from aioquic.quic.congestion import base as aioquic_congestion
 from aioquic.quic.congestion.base import QuicCongestionControl, register_congestion_control
 from aioquic.quic.packet_builder import QuicSentPacket
 from aioquic.tls import Epoch
@@ -69,7 +67,7 @@ from aioquic.tls import Epoch
 NAME = "upcast-media"
 
 CWND_GAIN = 2.0
-ACK_ALLOWANCE_S = 0.010
+ACK_ALLOWANCE_S = 0.040
 MIN_WINDOW_PACKETS = 4
 BW_WINDOW_S = 1.0
 MIN_RTT_WINDOW_S = 10.0
@@ -78,7 +76,8 @@ LOSS_MIN_PACKETS = 32
 LOSS_BACKOFF = 0.7
 CAP_GROWTH = 1.25
 QUEUE_RTT_FACTOR = 1.25
-QUEUE_MIN_ROUND_PACKETS = 4
+QUEUE_MIN_PERIOD_S = 0.2
+QUEUE_MAX_CUT = 0.5
 IDLE_GAP_S = 0.002
 
 
@@ -141,9 +140,9 @@ class MediaCongestionControl(QuicCongestionControl):
         # round trips: a round ends when a packet sent after it began is acked
         self.rounds = 0
         self._next_round_delivered = 0
-        self._round_min_rtt = math.inf
-        self._latest_rate = 0.0
-        self._round_packets = 0
+        # queueing: since when every RTT sample is above what our window can queue
+        self._queued_since: float | None = None
+        self._queued_delivered = 0
         # loss accounting over at least one round and LOSS_MIN_PACKETS packets
         self._loss_acked = 0
         self._loss_lost = 0
@@ -191,14 +190,12 @@ class MediaCongestionControl(QuicCongestionControl):
             return
         self._first_sent_time = packet.sent_time
         if state.delivered >= self._next_round_delivered:
-            self._end_round(now)
-        self._round_packets += 1
+            self._end_round()
 
         interval = max(packet.sent_time - state.first_sent_time, now - state.delivered_time)
         if interval <= 0 or interval < min(self.min_rtt, 1.0):
             return  # shorter than a round trip: ACK compression, not a rate
         rate = (self.delivered - state.delivered) / interval
-        self._latest_rate = rate
         if not state.app_limited or rate >= self.bw_filter.value:
             self.bw_filter.update(now, rate)
         self._update_window()
@@ -224,26 +221,38 @@ class MediaCongestionControl(QuicCongestionControl):
         if rtt <= self.min_rtt or now - self._min_rtt_stamp > MIN_RTT_WINDOW_S:
             self.min_rtt = rtt
             self._min_rtt_stamp = now
-        self._round_min_rtt = min(self._round_min_rtt, rtt)
+        own_rtt = CWND_GAIN * (self.min_rtt + ACK_ALLOWANCE_S)  # the most we queue
+        if rtt <= QUEUE_RTT_FACTOR * own_rtt:
+            self._queued_since = None
+        elif self._queued_since is None:
+            self._queued_since, self._queued_delivered = now, self.delivered
+        elif now - self._queued_since >= max(own_rtt, QUEUE_MIN_PERIOD_S):
+            self._on_queue(now, self._queued_since)
+            self._queued_since, self._queued_delivered = now, self.delivered
 
     def get_log_data(self) -> dict[str, Any]:
         data = super().get_log_data()
         data["bandwidth"] = self.bandwidth
         return data
 
-    # -- once per round trip ---------------------------------------------------
+    # -- congestion signals ----------------------------------------------------
 
-    def _end_round(self, now: float) -> None:
+    def _on_queue(self, now: float, since: float) -> None:
+        """Every RTT sample since `since` was above what our own window can queue:
+        the link slowed down, or others fill the queue."""
+        best = self.bw_filter.value
+        # What was delivered meanwhile went through the standing queue: the link's
+        # rate. Averaged over the period, as single samples shrink to nothing when
+        # a busy host holds ACKs; at most halved each time, so that a slow moment
+        # of the host cannot wipe the estimate.
+        through_queue = (self.delivered - self._queued_delivered) / (now - since)
+        if through_queue < best:
+            self.bw_filter.reset(now, max(through_queue, QUEUE_MAX_CUT * best))
+            self._update_window()
+
+    def _end_round(self) -> None:
         self.rounds += 1
         self._next_round_delivered = self.delivered
-        own_rtt = CWND_GAIN * (self.min_rtt + ACK_ALLOWANCE_S)
-        queued = QUEUE_RTT_FACTOR * own_rtt < self._round_min_rtt < math.inf
-        if queued and self._round_packets >= QUEUE_MIN_ROUND_PACKETS and self._latest_rate:
-            # The newest sample was taken through the full queue: it is the link.
-            self.bw_filter.reset(now, min(self._latest_rate, self.bw_filter.value))
-        self._round_min_rtt = math.inf
-        self._round_packets = 0
-
         counted = self._loss_acked + self._loss_lost
         lossy = self._loss_lost > LOSS_THRESHOLD * max(counted, LOSS_MIN_PACKETS)
         if lossy:
@@ -261,15 +270,6 @@ def register() -> None:
     """Make ``upcast-media`` a name ``QuicConfiguration.congestion_control_algorithm``
     accepts (idempotent)."""
     register_congestion_control(NAME, MediaCongestionControl)
-
-
-def algorithm_names() -> tuple[str, ...]:
-    """The registered congestion control names, ours first. aioquic keeps its
-    registry private (``_factories``) and offers no listing; settings validate
-    against this."""
-    names = sorted(aioquic_congestion._factories)
-    names.remove(NAME)
-    return (NAME, *names)
 
 
 register()

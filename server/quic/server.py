@@ -26,6 +26,7 @@ from aioquic.quic.packet import QuicPacketType, pull_quic_header
 
 from . import sf
 from .certs import CertBundle
+from .congestion_register import default_algorithm
 from .connection import IDLE_TIMEOUT_S, WtConnection, decode_headers, normalize_address
 from .guard import (
     BAD_PATH,
@@ -339,13 +340,15 @@ def bind_udp(host: str, port: int) -> socket.socket:
 
 
 def server_configuration(
-    cert: CertBundle, idle_timeout: float = IDLE_TIMEOUT_S
+    cert: CertBundle, idle_timeout: float = IDLE_TIMEOUT_S, congestion_control: str | None = None
 ) -> QuicConfiguration:
     config = QuicConfiguration(
         alpn_protocols=H3_ALPN,
         is_client=False,
         max_datagram_frame_size=65536,
         idle_timeout=idle_timeout,
+        # upcast-media unless `upcast relay --congestion-control` chose reno/cubic
+        congestion_control_algorithm=congestion_control or default_algorithm(),
     )
     config.load_cert_chain(cert.cert_path, cert.key_path)
     return config

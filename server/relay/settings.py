@@ -8,9 +8,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from server.moq.limits import IngressLimits
+from server.quic.congestion_register import DEFAULT_ALGORITHM, algorithm_names, check_algorithm
 from server.quic.guard import GuardLimits
 
 _DEFAULT_INGRESS = IngressLimits()
@@ -71,6 +72,17 @@ class RelaySettings(BaseModel):
         gt=0,
         description="seconds a QUIC connection has to get its WebTransport CONNECT accepted",
     )
+    congestion_control: str = Field(
+        default=DEFAULT_ALGORITHM,
+        description="QUIC congestion controller: "
+        + ", ".join(algorithm_names())
+        + f" ({DEFAULT_ALGORITHM} holds the rate under random loss; reno/cubic halve it)",
+    )
+
+    @field_validator("congestion_control")
+    @classmethod
+    def _registered(cls, value: str) -> str:
+        return check_algorithm(value)
 
     @model_validator(mode="after")
     def _consistent(self) -> RelaySettings:
