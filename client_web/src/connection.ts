@@ -28,7 +28,7 @@ const MAX_BACKOFF_MS = 5000;
 export async function keepConnected(url: URL, events: ConnectionEvents): Promise<never> {
 	let backoff = MIN_BACKOFF_MS;
 	for (;;) {
-		events.status("connecting", url.toString());
+		events.status("connecting", redacted(url));
 		let connection: Moq.Connection.Established;
 		try {
 			// For an http:// URL @moq/lite fetches /certificate.sha256 from the same host and
@@ -37,13 +37,13 @@ export async function keepConnected(url: URL, events: ConnectionEvents): Promise
 			const transport = await testTransport(url);
 			connection = await Moq.Connection.connect(url, transport ? { transport } : { websocket: { enabled: false } });
 		} catch (err) {
-			events.status("failed", `${url} unreachable: ${describeConnectError(err)}`);
+			events.status("failed", `${redacted(url)} unreachable: ${describeConnectError(err)}`);
 			await sleep(backoff);
 			backoff = Math.min(backoff * 2, MAX_BACKOFF_MS);
 			continue;
 		}
 		backoff = MIN_BACKOFF_MS;
-		console.info("upcast: connected to", url.toString(), "version", connection.version);
+		console.info("upcast: connected to", redacted(url), "version", connection.version);
 		events.status("connected", connection.version);
 		const closed = connection.closed.then(
 			() => "connection closed",
@@ -102,6 +102,14 @@ export class Announcement {
 		this.#waiters = [];
 		for (const wake of waiters) wake();
 	}
+}
+
+/** The URL without its token, for the status line and the console. */
+function redacted(url: URL): string {
+	if (!url.searchParams.has("jwt")) return url.toString();
+	const copy = new URL(url);
+	copy.searchParams.set("jwt", "...");
+	return copy.toString();
 }
 
 export function sleep(ms: number): Promise<void> {

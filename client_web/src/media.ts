@@ -26,14 +26,15 @@ export interface MediaEvents {
 	audioCatalog?(rendition: AudioRendition): void;
 	/** One audio frame: varint pts (us) + Opus packet. */
 	audio?(payload: Uint8Array): void;
-	/** Counting only: groups never received, or abandoned unfinished for a newer one. */
+	/** Counting only: groups never received (sequence gaps), reset, or cut short by a test fault. */
 	groupSkipped(count: number): void;
 	/**
-	 * A video group ended before its end: reset by the relay (it skips a viewer whose
-	 * oldest unsent frame is older than its max latency), abandoned for a newer group,
-	 * or dropped by a test fault. Also counted by groupSkipped. The frames after it
-	 * need a keyframe, and the next group may only start at one the player asks for;
-	 * `newerWaiting`: a newer group (which starts at a keyframe) is already here.
+	 * A video group ended before its FIN: reset by the relay (it skips a viewer whose
+	 * oldest unsent frame is older than its max latency) or cut by a test fault (both
+	 * counted by groupSkipped), or left unfinished because a newer group is waiting
+	 * (`newerWaiting`; not counted: its FIN may simply be slower than the next group's
+	 * first frame, and only a jump in the fragment numbers says frames were missing).
+	 * After a reset the next group may only start at a keyframe the player asks for.
 	 */
 	groupEnded?(why: string, newerWaiting: boolean): void;
 }
@@ -47,6 +48,8 @@ export interface VideoFaults {
 	dropGroups: number;
 	/** Until this performance.now(), every video frame is thrown away (a blackout). */
 	blackoutUntilMs: number;
+	/** Frames to garble (the first NAL length of the sample made absurd): a decoder error. */
+	corruptFrames: number;
 }
 
 export class MediaSubscription {
@@ -186,7 +189,7 @@ export class MediaSubscription {
 					this.#endEarly(group, fault);
 					return;
 				}
-				this.#events.video(frame, gap && first);
+				this.#events.video(this.#corrupt(frame), gap && first);
 				first = false;
 				continue;
 			}
@@ -209,9 +212,24 @@ export class MediaSubscription {
 	}
 
 	#endEarly(group: Moq.Group, why: string, newerWaiting = false): void {
-		this.#events.groupSkipped(1);
+		if (!newerWaiting) this.#events.groupSkipped(1);
 		group.close();
 		this.#events.groupEnded?.(why, newerWaiting);
+	}
+
+	#corrupt(frame: Uint8Array): Uint8Array {
+		const faults = this.#faults;
+		if (!faults || faults.corruptFrames <= 0) return frame;
+		faults.corruptFrames--;
+		const out = frame.slice();
+		// The mdat payload starts with the first NAL's 4-byte length (AVCC).
+		for (let i = 0; i + 12 <= out.length; i++) {
+			if (out[i + 4] === 0x6d && out[i + 5] === 0x64 && out[i + 6] === 0x61 && out[i + 7] === 0x74) {
+				out.set([0x7f, 0xff, 0xff, 0xff], i + 8);
+				break;
+			}
+		}
+		return out;
 	}
 
 	#fault(): string | undefined {

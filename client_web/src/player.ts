@@ -40,6 +40,8 @@ function main(): void {
 		subscribed: false,
 		framesReceived: 0,
 		feedbackSent: 0,
+		/** Connections made to the relay (more than 1: it reconnected). */
+		connections: 0,
 		codec: undefined as string | undefined,
 		lastPresentedFrameId: undefined as number | undefined,
 		lastPresentedPtsUs: undefined as number | undefined,
@@ -59,6 +61,7 @@ function main(): void {
 	const setStatus = (status: Status | string, detail?: string): void => {
 		state.status = detail ? `${status}: ${detail}` : status;
 		state.connected = status === "connected" || status === "subscribed" || status === "waiting for broadcast";
+		if (status === "connected") state.connections++;
 		statusLine.textContent = state.status;
 		statusLine.dataset.state = status;
 		if (status === "failed") error(state.status);
@@ -77,7 +80,7 @@ function main(): void {
 	// the keyframe requests that get the picture going again after a loss (recovery.ts).
 	const receive = new ReceiveStats();
 	const recovery = new KeyframeRecovery();
-	const faults: VideoFaults = { dropGroups: 0, blackoutUntilMs: 0 };
+	const faults: VideoFaults = { dropGroups: 0, blackoutUntilMs: 0, corruptFrames: 0 };
 
 	const renderer = new Renderer(canvas);
 	renderer.onPresent = ({ ptsUs }) => {
@@ -228,13 +231,19 @@ function main(): void {
 		audioOutput: () => audio?.output ?? null,
 		/** Send an input message by hand (tests); returns it with seq and sent_ms. */
 		send: (message: Parameters<InputPublisher["send"]>[0]) => publisher.send(message),
-		/** Test faults: `dropGroup()` cuts the current video group short, `blackout(ms)` throws every video frame away for ms. */
+		/**
+		 * Test faults: `dropGroup()` cuts the current video group short, `blackout(ms)`
+		 * throws every video frame away for ms, `corrupt(n)` garbles the next n frames.
+		 */
 		faults: {
 			dropGroup: (count = 1) => {
 				faults.dropGroups += count;
 			},
 			blackout: (ms: number) => {
 				faults.blackoutUntilMs = performance.now() + ms;
+			},
+			corrupt: (count = 1) => {
+				faults.corruptFrames += count;
 			},
 		},
 	};
@@ -246,6 +255,8 @@ function main(): void {
 	}
 
 	const name = Moq.Path.from(config.broadcast);
+	// A video group was left for a newer one; counted as skipped if frames are missing.
+	let groupLeft = false;
 	void keepConnected(config.url, {
 		status: setStatus,
 		run: async (connection, closed) => {
@@ -279,6 +290,7 @@ function main(): void {
 			// The relay starts a subscription at its newest group, at a keyframe.
 			receive.restart();
 			recovery.reset();
+			groupLeft = false;
 			const subscription = new MediaSubscription(connection, name, {
 				catalog: (rendition) => {
 					state.codec = rendition.codec;
@@ -290,11 +302,15 @@ function main(): void {
 				},
 				video: (fragment, gap) => {
 					state.framesReceived++;
+					const left = groupLeft;
+					groupLeft = false;
 					const now = wallUs();
 					const arrival = performance.now();
 					const header = readFragmentHeader(fragment);
 					const ptsUs = header ? decoder.ptsUs(header.decodeTime) : undefined;
 					const lost = receive.fragment(header?.sequence, ptsUs, fragment.byteLength, arrival);
+					// The group left for this one was cut short only if frames are missing.
+					if (left && lost > 0) receive.groupsSkipped(1);
 					if (gap || lost > 0) decoder.gap(gap ? "group skipped" : `${lost} frame(s) lost`);
 					try {
 						const decoded = decoder.decode(fragment);
@@ -330,9 +346,14 @@ function main(): void {
 				},
 				groupSkipped: (count) => receive.groupsSkipped(count),
 				groupEnded: (why, newerWaiting) => {
+					if (newerWaiting) {
+						// The next group starts at its keyframe: judged by its first fragment.
+						groupLeft = true;
+						return;
+					}
 					decoder.gap("group ended early");
 					// The next group may only start at a keyframe nobody asked for yet.
-					if (!newerWaiting) needKeyframe(why);
+					needKeyframe(why);
 				},
 			}, faults);
 			state.subscribed = true;

@@ -131,6 +131,8 @@ export interface Stats {
 	recovery: { waiting: boolean; reason?: string; keyframeRequests: number; recoveries: number; lastRecoveryMs?: number };
 	/** Feedback messages sent on the input track. */
 	feedbackSent: number;
+	/** Connections made to the relay (more than 1: the page reconnected). */
+	connections: number;
 	width: number;
 	height: number;
 	codec?: string;

@@ -9,7 +9,11 @@ Against the live stack (relay process, game, session) and headless Chromium:
   frames (mfhd jumps), asks for a keyframe by itself and shows frames again in well
   under the 2 s periodic keyframe interval;
 - after 3 s in which every video frame is thrown away (a blackout) it asks again
-  until a keyframe comes, and plays on without a reload or a reconnect.
+  until a keyframe comes, and plays on without a reload or a reconnect;
+- through the network emulator (server/net: a UDP proxy between the page and the
+  relay), 3 s of 100 % loss both ways: the QUIC session survives, the relay resets
+  the group the page lagged in, the page asks for a keyframe and plays on; 12 s of
+  it: the connection dies (10 s idle timeout) and the page reconnects by itself.
 
 The counters' and the recovery's logic alone (client_web/src/feedback.ts, recovery.ts,
 fragment.ts) is checked in node first, on fragments server/media/cmaf.py wrote.
@@ -30,9 +34,13 @@ from typing import Any
 import pytest
 
 from server.media.cmaf import media_fragment
+from server.net.emulator import EmulatorThread
+from server.net.link_profile import LinkProfile, Schedule
 from server.session.viewer_input import FeedbackMessage, KeyframeMessage, parse_viewer_message
 from tests.e2e.conftest import Live, needs, open_player, start_live, stats
 
+CABLE = LinkProfile.both_ways(rate_bps=20e6, rtt_ms=15.0)
+DEAD = LinkProfile.both_ways(rate_bps=20e6, rtt_ms=15.0, loss=1.0)
 CLIENT = Path(__file__).resolve().parents[2] / "client_web"
 CLIENT_MODULES = CLIENT / "node_modules"
 E2E = [*needs("index.html"), pytest.mark.timeout(180)]
@@ -112,16 +120,24 @@ def test_counters_and_recovery_logic_in_node(tmp_path: Path) -> None:
     assert json.loads(out.stdout) == {"failures": []}
 
 
+def _published(live: Live) -> int:
+    session = live.stack.session
+    assert session is not None
+    return int(session.broadcast.stats.frames_published)
+
+
 def _feedback(tap: InputTap, since: float = 0.0) -> list[FeedbackMessage]:
     return [m for _, _, m in tap.of(FeedbackMessage, since)]
 
 
 @e2e
 def test_page_sends_feedback(live: tuple[Live, InputTap], page: Any) -> None:
-    _, tap = live
+    stack, tap = live
+    published = _published(stack)
     t0 = time.monotonic()
     page.wait_for_timeout(1500)
     got = _feedback(tap, t0)
+    published = _published(stack) - published
     s = stats(page)
     print("feedback:", len(got), "last:", got[-1].model_dump() if got else None)
     # Every 250 ms: about 6 in 1.5 s (a loaded machine may delay a timer or two).
@@ -131,15 +147,16 @@ def test_page_sends_feedback(live: tuple[Live, InputTap], page: Any) -> None:
     seqs = [m.seq for m in got]
     assert seqs == sorted(seqs)
     frames = [f for m in got for f in m.frames]
-    # 30 fps target (15-30 on a loaded machine): each frame reported once, in order.
-    assert len(frames) >= 10, len(frames)
+    # Each frame the session published in the window reported once, in order (30 fps
+    # is the target; a loaded 2-core machine makes 5 to 30).
+    assert len(frames) >= 0.6 * published - 2 and frames, (len(frames), published)
     pts = [p for p, _ in frames]
     arrivals = [a for _, a in frames]
     assert pts == sorted(set(pts)), "each frame reported once, in order"
     assert arrivals == sorted(arrivals)
     # pts in microseconds (the encoder's capture clock): ~1.5 s of them, frames apart.
     assert min(b - a for a, b in itertools.pairwise(pts)) > 10_000
-    assert 0.7e6 < pts[-1] - pts[0] < 2.5e6, (pts[0], pts[-1])
+    assert pts[-1] - pts[0] < 2.5e6, (pts[0], pts[-1])
     # Counters are cumulative and match the page's own.
     last = got[-1]
     assert last.bytes > 0 and last.bytes <= s["bytesReceived"]
@@ -201,12 +218,14 @@ def test_skipped_group_counted_and_recovered_by_a_keyframe_request(
 def test_three_seconds_of_total_loss_recovers_without_reload(
     live: tuple[Live, InputTap], page: Any
 ) -> None:
-    _, tap = live
+    stack, tap = live
     before = stats(page)
     t0 = time.monotonic()
+    published = _published(stack)
     page.evaluate("() => window.upcast.faults.blackout(3000)")
     t_end = time.monotonic() + 3.0
     page.wait_for_timeout(3000)
+    published = _published(stack) - published
     presented_at_end = stats(page)["framesPresented"]
     page.wait_for_function(
         "n => window.upcast.stats().framesPresented >= n + 5", arg=presented_at_end, timeout=5000
@@ -221,6 +240,7 @@ def test_three_seconds_of_total_loss_recovers_without_reload(
         "freeze_ms": end["freezeMs"] - before["freezeMs"],
         "skipped": end["groupsSkipped"] - before["groupsSkipped"],
         "lost": end["framesLost"] - before["framesLost"],
+        "published_in_blackout": published,
         "status": end["status"],
         "version": [before["version"], end["version"]],
     }
@@ -232,7 +252,110 @@ def test_three_seconds_of_total_loss_recovers_without_reload(
     assert back_s < 1.6, summary
     assert end["recovery"]["recoveries"] > before["recovery"]["recoveries"]
     assert summary["freezes"] >= 1 and summary["freeze_ms"] >= 2900, summary
-    assert summary["lost"] >= 60, summary  # 3 s at 30 fps
+    assert summary["lost"] >= 0.8 * published, summary  # every frame of the 3 s
     # The same connection and subscription: no reload, no reconnect.
     assert end["status"].startswith("subscribed") and before["version"] == end["version"]
     assert not [e for e in end["errors"] if "decoder" in e], end["errors"]
+
+
+@e2e
+def test_decoder_error_rebuilds_the_decoder_and_asks_for_a_keyframe(
+    live: tuple[Live, InputTap], page: Any
+) -> None:
+    before = stats(page)
+    # A garbled frame (its first NAL length absurd): WebCodecs errors and closes the decoder.
+    page.evaluate("() => window.upcast.faults.corrupt(1)")
+    after = _recovered(page, before, 5000)
+    page.wait_for_function(
+        "n => window.upcast.stats().framesDecoded >= n + 10", arg=after["framesDecoded"]
+    )
+    end = stats(page)
+    summary = {
+        "reason": after["recovery"]["reason"],
+        "recovery_ms": after["recovery"]["lastRecoveryMs"],
+        "requests": end["recovery"]["keyframeRequests"] - before["recovery"]["keyframeRequests"],
+        "errors": end["errors"][-2:],
+    }
+    print("decoder error:", json.dumps(summary))
+    assert any(e.startswith("decoder:") for e in end["errors"]), summary
+    assert summary["reason"] == "decoder error" and summary["requests"] >= 1, summary
+    assert summary["recovery_ms"] < 1000, summary
+
+
+def _through_dead_link(
+    live: tuple[Live, InputTap], browser: Any, dead_s: float
+) -> tuple[dict[str, Any], dict[str, Any], float]:
+    """Plays through the emulator, then cuts the link both ways for ``dead_s``; returns
+    the page's stats before the cut and once frames flow again, and how long after the
+    link came back they did."""
+    stack, _ = live
+    lead_s = 3.0  # of normal play after the schedule restarts (the page loads before)
+    schedule = Schedule.of([(0.0, CABLE), (lead_s, DEAD), (lead_s + dead_s, CABLE)])
+    with EmulatorThread(
+        upstream=("127.0.0.1", stack.port), schedule=schedule, tcp_passthrough=True
+    ) as net:
+        page = open_player(browser, stack.stack.player_url(overlay="0", port=str(net.port)))
+        try:
+            page.wait_for_function("() => window.upcast.stats().feedbackSent >= 2", timeout=15_000)
+            # Page loads take seconds here: the schedule counts from now on.
+            net.restart_schedule()
+            t_cut = time.monotonic() + lead_s
+            page.wait_for_timeout(lead_s * 1000 - 300)
+            before = stats(page)
+            page.wait_for_timeout((t_cut + dead_s - time.monotonic()) * 1000)
+            t_back = time.monotonic()
+            presented = stats(page)["framesPresented"]
+            page.wait_for_function(
+                "n => window.upcast.stats().framesPresented >= n + 5", arg=presented, timeout=15_000
+            )
+            back_s = time.monotonic() - t_back
+            end = stats(page)
+        finally:
+            page.close()
+        print("emulator:", json.dumps(net.stats()["down"]))
+    return before, end, back_s
+
+
+@e2e
+def test_network_blackout_of_three_seconds_recovers_on_the_same_connection(
+    live: tuple[Live, InputTap], browser: Any
+) -> None:
+    before, end, back_s = _through_dead_link(live, browser, 3.0)
+    summary = {
+        "frames_again_after_s": round(back_s, 2),
+        "requests": end["recovery"]["keyframeRequests"] - before["recovery"]["keyframeRequests"],
+        "recovery_ms": end["recovery"]["lastRecoveryMs"],
+        "reason": end["recovery"]["reason"],
+        "freezes": end["freezes"] - before["freezes"],
+        "longest_freeze_ms": end["longestFreezeMs"],
+        "skipped": end["groupsSkipped"] - before["groupsSkipped"],
+        "lost": end["framesLost"] - before["framesLost"],
+        "connections": end["connections"],
+        "status": end["status"],
+    }
+    print("network blackout:", json.dumps(summary))
+    assert end["connections"] == 1 and end["status"].startswith("subscribed"), summary
+    # What was sent in the blackout is gone: the relay reset the group the page lagged in.
+    assert summary["skipped"] >= 1 and summary["lost"] >= 5, summary
+    assert summary["requests"] >= 1, summary
+    assert end["longestFreezeMs"] >= 2900, summary
+    # QUIC probes the path again within its backoff; then a keyframe on request.
+    assert back_s < 3.0, summary
+
+
+@e2e
+def test_connection_lost_to_a_long_blackout_reconnects(
+    live: tuple[Live, InputTap], browser: Any
+) -> None:
+    # Longer than the relay's and the page's 10 s QUIC idle timeout: the connection dies.
+    before, end, back_s = _through_dead_link(live, browser, 12.0)
+    summary = {
+        "frames_again_after_s": round(back_s, 2),
+        "connections": [before["connections"], end["connections"]],
+        "status": end["status"],
+    }
+    print("long blackout:", json.dumps(summary))
+    assert before["connections"] == 1 and end["connections"] >= 2, summary
+    assert end["status"].startswith("subscribed")
+    # Reconnect back-off (0.5 s doubling to 5 s while the link is dead), connect, subscribe.
+    assert back_s < 10.0, summary
