@@ -50,5 +50,6 @@ def test_short_run_reports_every_figure(tmp_path: Path) -> None:
         assert viewers["count"] == 1 and "delivery" in viewers["viewers"][0]
     assert set(lan["series"]["capacity_bps"]) == {None}
     assert set(lte["series"]["capacity_bps"]) == {4e6}
+    assert [r["name"] for r in report["ratios"]] == ["lan: delivered fps", "lte: delivered fps"]
     assert "lte" in table(report["cases"])
     assert plot_path.stat().st_size > 0

@@ -143,7 +143,14 @@ def run(args: argparse.Namespace) -> int:
                 run_ = NetworkRun(
                     profile, args.seconds, args.warmup, args.viewers, session, bitrate
                 )
-                report.add_case(**measure(run_, browser))
+                case = report.add_case(**measure(run_, browser))
+                if case["delivered_ratio"] is not None:
+                    report.add_ratio(
+                        f"{profile}: delivered fps",
+                        "page_fps",
+                        "server_fps",
+                        case["delivered_ratio"],
+                    )
         finally:
             browser.close()
     report.notes.extend(_notes())
