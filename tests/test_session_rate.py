@@ -73,3 +73,12 @@ def test_rate_control_off_keeps_the_configured_bitrate() -> None:
     rate.step(10.0)
     assert encoder.bitrate == 1_000_000
     assert state["rate_reason"] == "fixed"
+
+
+def test_a_configured_rate_below_the_encoder_floor_still_works() -> None:
+    state: dict[str, str | float | bool] = {}
+    encoder = VideoEncoder(EncoderConfig(W, H, fps=FPS, bitrate=60_000))
+    rate = SessionRate(encoder, state)
+    rate.on_message("page", KeysMessage(type="keys", down=[]))
+    rate.step(100.0)
+    assert encoder.bitrate <= 60_000

@@ -201,12 +201,13 @@ class VideoEncoder:
 
     def set_bitrate(self, bits_per_second: int) -> int:
         """Aim at a new bitrate from the next frame on; returns the rate that will be
-        used: clamped to ``MIN_BITRATE`` .. the configured bitrate (the VBV ceiling).
+        used: clamped to ``MIN_BITRATE`` .. the configured bitrate (the VBV ceiling;
+        it wins where it is lower than ``MIN_BITRATE``).
 
         Safe to call from the event loop while another thread encodes: the encoding
         thread applies it before its next frame.
         """
-        rate = max(MIN_BITRATE, min(self.config.target_bitrate, int(bits_per_second)))
+        rate = min(self.config.target_bitrate, max(MIN_BITRATE, int(bits_per_second)))
         self._pending_bitrate = rate
         return rate
 

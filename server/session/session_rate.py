@@ -43,7 +43,8 @@ class SessionRate:
         """``enabled=False``: the configured bitrate stays whatever viewers report."""
         self.encoder = encoder
         self.enabled = enabled
-        self.controller = RateController(encoder.config.target_bitrate, MIN_BITRATE)
+        ceiling = encoder.config.target_bitrate
+        self.controller = RateController(ceiling, min(MIN_BITRATE, ceiling))
         self._state = stream_state
         self.frame_divisor = 1
         cfg = encoder.config
