@@ -82,3 +82,16 @@ def test_a_configured_rate_below_the_encoder_floor_still_works() -> None:
     rate.on_message("page", KeysMessage(type="keys", down=[]))
     rate.step(100.0)
     assert encoder.bitrate <= 60_000
+
+
+def test_the_rate_is_on_the_sessions_metrics() -> None:
+    from prometheus_client import CollectorRegistry
+
+    registry = CollectorRegistry()
+    encoder = VideoEncoder(EncoderConfig(W, H, fps=FPS, bitrate=1_000_000))
+    rate = SessionRate(encoder, {}, registry=registry)
+    rate.on_message("page", KeysMessage(type="keys", down=[]))
+    rate.step(rate.controller._players["page"].first_seen_s + 3.5)
+    assert registry.get_sample_value("upcast_video_bitrate_bps") == 250_000
+    assert registry.get_sample_value("upcast_fps_divisor") == 1
+    assert registry.get_sample_value("upcast_bitrate_changes_total") == 1

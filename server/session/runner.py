@@ -106,7 +106,9 @@ class StreamingSession:
             )
         )
         self.stream_state: dict[str, str | float | bool] = {}
-        self.rate = SessionRate(self.encoder, self.stream_state, enabled=settings.rate_control)
+        self.rate = SessionRate(
+            self.encoder, self.stream_state, enabled=settings.rate_control, registry=registry
+        )
         self.monitor = FrameRateMonitor("session", settings.fps, registry=registry)
         self.router = InputRouter(
             game_input=game_input,

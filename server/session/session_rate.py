@@ -20,8 +20,11 @@ import asyncio
 import logging
 import time
 
+from prometheus_client import CollectorRegistry
+
 from server.media.encode import MIN_BITRATE, EncodedFrame, VideoEncoder
 from server.session.rate_control import RateController
+from server.session.rate_metrics import RateMetrics
 from server.session.viewer_input import FeedbackMessage, ViewerMessage
 
 log = logging.getLogger(__name__)
@@ -39,6 +42,7 @@ class SessionRate:
         stream_state: dict[str, str | float | bool],
         *,
         enabled: bool = True,
+        registry: CollectorRegistry | None = None,
     ) -> None:
         """``enabled=False``: the configured bitrate stays whatever viewers report."""
         self.encoder = encoder
@@ -50,6 +54,7 @@ class SessionRate:
         cfg = encoder.config
         self._bits_floor = MIN_BITS_PER_PIXEL * cfg.width * cfg.height * cfg.fps
         self._rate = cfg.target_bitrate
+        self._metrics = RateMetrics.for_registry(registry) if registry is not None else None
         self._publish_state()
 
     def frame_sent(self, encoded: EncodedFrame) -> None:
@@ -79,6 +84,8 @@ class SessionRate:
                 )
                 self.frame_divisor = divisor
             self.encoder.set_bitrate(rate * divisor)
+            if self._metrics is not None:
+                self._metrics.changes.inc()
             state = self.controller.state
             log.info(
                 "bitrate %.2f Mbit/s (%s, %d player%s)",
@@ -103,6 +110,8 @@ class SessionRate:
 
     def _publish_state(self) -> None:
         state = self.controller.state
+        if self._metrics is not None:
+            self._metrics.update(self._rate, state, self.frame_divisor)
         self._state["bitrate"] = self._rate
         self._state["fps_divisor"] = self.frame_divisor
         self._state["rate_reason"] = state.reason if self.enabled else "fixed"
