@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 from prometheus_client import CollectorRegistry, Counter, Gauge
 
 from server.session.rate_control import RateState
 
 
 class RateMetrics:
-    _by_registry: dict[CollectorRegistry, RateMetrics] = {}
+    _by_registry: ClassVar[dict[CollectorRegistry, RateMetrics]] = {}
 
     @classmethod
     def for_registry(cls, registry: CollectorRegistry) -> RateMetrics:
