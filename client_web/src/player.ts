@@ -187,7 +187,8 @@ function main(): void {
 		width: renderer.width,
 		height: renderer.height,
 		predictedShare: predictedFlags.length ? predictedFlags.filter(Boolean).length / predictedFlags.length : 0,
-		inputsSent: publisher.sent,
+		// Feedback goes the same way but is not an input: counted apart (feedbackSent).
+		inputsSent: publisher.sent - state.feedbackSent,
 		inputPath: publisher.path,
 		inputSubscribers: publisher.subscribers,
 		latency: latency.summary(),
