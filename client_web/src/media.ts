@@ -29,15 +29,18 @@ export interface MediaEvents {
 	/** Counting only: groups never received (sequence gaps), reset, or cut short by a test fault. */
 	groupSkipped(count: number): void;
 	/**
-	 * A video group ended before its FIN: reset by the relay (it skips a viewer whose
-	 * oldest unsent frame is older than its max latency) or cut by a test fault (both
-	 * counted by groupSkipped), or left unfinished because a newer group is waiting
-	 * (`newerWaiting`; not counted: its FIN may simply be slower than the next group's
-	 * first frame, and only a jump in the fragment numbers says frames were missing).
-	 * After a reset the next group may only start at a keyframe the player asks for.
+	 * A video group ended before its FIN. `reset`: by the relay (it skips a viewer whose
+	 * oldest unsent frame is older than its max latency); `fault`: cut by a test fault
+	 * (both counted by groupSkipped); `left`: left unfinished for a newer group (not
+	 * counted: its FIN may simply trail the next group's first frame; only a jump in
+	 * the fragment numbers says frames were missing). `newerWaiting`: a newer group,
+	 * which starts at a keyframe, is already here; if not, the next one may only start
+	 * at a keyframe the player asks for.
 	 */
-	groupEnded?(why: string, newerWaiting: boolean): void;
+	groupEnded?(why: string, kind: GroupEnd, newerWaiting: boolean): void;
 }
+
+export type GroupEnd = "reset" | "fault" | "left";
 
 /**
  * Test faults (window.upcast.faults): the page acts as if the network had lost what
@@ -186,7 +189,9 @@ export class MediaSubscription {
 			if (frame) {
 				const fault = this.#fault();
 				if (fault) {
-					this.#endEarly(group, fault);
+					this.#events.groupSkipped(1);
+					group.close();
+					this.#events.groupEnded?.(fault, "fault", false);
 					return;
 				}
 				this.#events.video(this.#corrupt(frame), gap && first);
@@ -198,23 +203,22 @@ export class MediaSubscription {
 				// Reset: the relay skipped us past the rest of this group.
 				if (!this.#stopped && !track.state.closed.peek()) {
 					this.#events.groupSkipped(1);
-					this.#events.groupEnded?.(`group ${group.sequence} reset: ${closed.message}`, track.state.groups.peek().length > 0);
+					this.#events.groupEnded?.(`group ${group.sequence} reset: ${closed.message}`, "reset", track.state.groups.peek().length > 0);
 				}
 				return;
 			}
 			if (closed) return; // FIN: the group is complete.
-			if (track.state.groups.peek().length > 0 || track.state.closed.peek()) {
-				this.#endEarly(group, `group ${group.sequence} left for a newer one`, !track.state.closed.peek());
+			if (track.state.closed.peek()) {
+				group.close(); // the subscription ends: not a skip
+				return;
+			}
+			if (track.state.groups.peek().length > 0) {
+				group.close();
+				this.#events.groupEnded?.(`group ${group.sequence} left for a newer one`, "left", true);
 				return;
 			}
 			await Signal.race(group.state.frames, group.state.closed, track.state.groups, track.state.closed);
 		}
-	}
-
-	#endEarly(group: Moq.Group, why: string, newerWaiting = false): void {
-		if (!newerWaiting) this.#events.groupSkipped(1);
-		group.close();
-		this.#events.groupEnded?.(why, newerWaiting);
 	}
 
 	#corrupt(frame: Uint8Array): Uint8Array {

@@ -346,15 +346,15 @@ function main(): void {
 					}
 				},
 				groupSkipped: (count) => receive.groupsSkipped(count),
-				groupEnded: (why, newerWaiting) => {
-					if (newerWaiting) {
-						// The next group starts at its keyframe: judged by its first fragment.
+				groupEnded: (why, kind, newerWaiting) => {
+					if (kind === "left") {
+						// Counted as skipped if the next group's first fragment shows a loss.
 						groupLeft = true;
 						return;
 					}
 					decoder.gap("group ended early");
 					// The next group may only start at a keyframe nobody asked for yet.
-					needKeyframe(why);
+					if (!newerWaiting) needKeyframe(why);
 				},
 			}, faults);
 			state.subscribed = true;
