@@ -10,6 +10,8 @@ Against the live stack (relay process, game, session) and headless Chromium:
   under the 2 s periodic keyframe interval;
 - after 3 s in which every video frame is thrown away (a blackout) it asks again
   until a keyframe comes, and plays on without a reload or a reconnect;
+- a garbled frame makes WebCodecs fail (the decoder closes itself): the page builds a
+  new decoder, asks for a keyframe and decodes again;
 - through the network emulator (server/net: a UDP proxy between the page and the
   relay), 3 s of 100 % loss both ways: the QUIC session survives, the relay resets
   the group the page lagged in, the page asks for a keyframe and plays on; 12 s of
