@@ -23,13 +23,16 @@ def test_rate_series_takes_rates_over_each_span() -> None:
     series = RateSeries(PROFILES["drop"], t0=100.0)
     series.sample(100.0, target_bps=3_000_000, step=0, link_bytes=0, page_bytes=None)
     series.sample(100.5, target_bps=3_000_000, step=0, link_bytes=125_000, page_bytes=1000)
-    series.sample(101.0, target_bps=1_000_000, step=1, link_bytes=250_000, page_bytes=63_500)
+    series.sample(
+        101.0, target_bps=1_000_000, step=1, link_bytes=250_000, page_bytes=63_500, frame_divisor=2
+    )
     data = series.as_dict()
     assert data["t_s"] == [0.5, 1.0]
     assert data["capacity_bps"] == [20e6, 2e6]
     assert data["link_delivered_bps"] == [2e6, 2e6]
     assert data["page_received_bps"] == [None, 1e6]
     assert data["bitrate_target_bps"] == [3_000_000, 1_000_000]
+    assert data["frame_divisor"] == [None, 2]
     assert series.means()["capacity_bps"] == 11e6
 
 

@@ -63,6 +63,11 @@ def _encoder_bitrate(live: LiveStack) -> int | None:
     return int(value) if isinstance(value, int | float) else None
 
 
+def _frame_divisor(live: LiveStack) -> int | None:
+    value = getattr(getattr(live.session, "rate", None), "frame_divisor", None)
+    return value if isinstance(value, int) else None
+
+
 def _stats(page: Any) -> dict[str, Any]:
     return page.evaluate("() => window.upcast.stats()")  # type: ignore[no-any-return]
 
@@ -145,6 +150,7 @@ def measure(run: NetworkRun, browser: Any) -> dict[str, Any]:
                     step=int(link["step"]),
                     link_bytes=int(link["down"]["bytes_delivered"]),
                     page_bytes=_bytes(last),
+                    frame_divisor=_frame_divisor(live),
                 )
                 if now >= t_end:
                     break

@@ -10,7 +10,9 @@ measurement window opened (when the emulator's schedule restarted):
 - ``link_delivered_bps``: bytes the emulator delivered downstream since the last
   sample (every viewer on the link, audio, timing and QUIC overhead included);
 - ``page_received_bps``: the page's own count of video bytes received, where the
-  page exposes one (``bytesReceived``), else None.
+  page exposes one (``bytesReceived``), else None;
+- ``frame_divisor``: 1, or 2 when rate control sends every other frame (a bitrate
+  too low for the full frame rate); None when the session has no rate control.
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ class RateSeries:
     capacity_bps: list[float | None] = field(default_factory=list)
     link_delivered_bps: list[float | None] = field(default_factory=list)
     page_received_bps: list[float | None] = field(default_factory=list)
+    frame_divisor: list[int | None] = field(default_factory=list)
     _last: tuple[float, int, int | None] | None = None  # now, link bytes, page bytes
 
     def sample(
@@ -50,6 +53,7 @@ class RateSeries:
         step: int,
         link_bytes: int,
         page_bytes: int | None,
+        frame_divisor: int | None = None,
     ) -> None:
         """One sample; the rates are over the time since the previous one (the first
         sample only sets the counters' base)."""
@@ -67,6 +71,7 @@ class RateSeries:
         if page_bytes is not None and last[2] is not None:
             page = round((page_bytes - last[2]) * 8 / span, 1)
         self.page_received_bps.append(page)
+        self.frame_divisor.append(frame_divisor)
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -76,6 +81,7 @@ class RateSeries:
             "capacity_bps": self.capacity_bps,
             "link_delivered_bps": self.link_delivered_bps,
             "page_received_bps": self.page_received_bps,
+            "frame_divisor": self.frame_divisor,
         }
 
     def means(self) -> dict[str, float | None]:
