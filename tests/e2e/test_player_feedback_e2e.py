@@ -16,6 +16,8 @@ Against the live stack (relay process, game, session) and headless Chromium:
   relay), 3 s of 100 % loss both ways: the QUIC session survives, the relay resets
   the group the page lagged in, the page asks for a keyframe and plays on; 12 s of
   it: the connection dies (10 s idle timeout) and the page reconnects by itself.
+- a 100 kbit/s link for 3 s: every frame the encoder made is received or counted
+  lost by the page (the timing track's gaps, the old "lost", say far fewer).
 
 The counters' and the recovery's logic alone (client_web/src/feedback.ts, recovery.ts,
 fragment.ts) is checked in node first, on fragments server/media/cmaf.py wrote.
@@ -285,14 +287,21 @@ def test_decoder_error_rebuilds_the_decoder_and_asks_for_a_keyframe(
 
 
 def _through_dead_link(
-    live: tuple[Live, InputTap], browser: Any, dead_s: float
+    live: tuple[Live, InputTap],
+    browser: Any,
+    dead_s: float,
+    link: LinkProfile = DEAD,
+    settle_ms: float = 0.0,
 ) -> tuple[dict[str, Any], dict[str, Any], float]:
-    """Plays through the emulator, then cuts the link both ways for ``dead_s``; returns
-    the page's stats before the cut and once frames flow again, and how long after the
-    link came back they did."""
+    """Plays through the emulator, then cuts the link both ways for ``dead_s`` (or
+    makes it ``link``); returns the page's stats before the cut and once frames flow
+    again (and ``settle_ms`` later), and how long after the link came back they did.
+    Each has ``encoded``: the fragments the encoder had made when it was read."""
     stack, _ = live
+    session = stack.stack.session
+    assert session is not None
     lead_s = 3.0  # of normal play after the schedule restarts (the page loads before)
-    schedule = Schedule.of([(0.0, CABLE), (lead_s, DEAD), (lead_s + dead_s, CABLE)])
+    schedule = Schedule.of([(0.0, CABLE), (lead_s, link), (lead_s + dead_s, CABLE)])
     with EmulatorThread(
         upstream=("127.0.0.1", stack.port), schedule=schedule, tcp_passthrough=True
     ) as net:
@@ -303,7 +312,7 @@ def _through_dead_link(
             net.restart_schedule()
             t_cut = time.monotonic() + lead_s
             page.wait_for_timeout(lead_s * 1000 - 300)
-            before = stats(page)
+            before = {**stats(page), "encoded": session.encoder.fragments_out}
             page.wait_for_timeout((t_cut + dead_s - time.monotonic()) * 1000)
             t_back = time.monotonic()
             presented = stats(page)["framesPresented"]
@@ -311,7 +320,8 @@ def _through_dead_link(
                 "n => window.upcast.stats().framesPresented >= n + 5", arg=presented, timeout=15_000
             )
             back_s = time.monotonic() - t_back
-            end = stats(page)
+            page.wait_for_timeout(settle_ms)
+            end = {**stats(page), "encoded": session.encoder.fragments_out}
         finally:
             page.close()
         print("emulator:", json.dumps(net.stats()["down"]))
@@ -361,3 +371,31 @@ def test_connection_lost_to_a_long_blackout_reconnects(
     assert end["status"].startswith("subscribed")
     # Reconnect back-off (0.5 s doubling to 5 s while the link is dead), connect, subscribe.
     assert back_s < 10.0, summary
+
+
+@e2e
+def test_lost_frames_are_counted_from_the_video_track(
+    live: tuple[Live, InputTap], browser: Any
+) -> None:
+    # 100 kbit/s for 3 s, far below the stream: the relay skips the page ahead (resets
+    # the groups it lags in) and frames never arrive.
+    slow = LinkProfile.both_ways(rate_bps=100e3, rtt_ms=15.0)
+    # Read 1 s after frames flow again: the backlog of the slow link has drained.
+    before, end, back_s = _through_dead_link(live, browser, 3.0, slow, settle_ms=1000)
+    encoded = end["encoded"] - before["encoded"]
+    received = end["framesReceived"] - before["framesReceived"]
+    lost = end["framesLost"] - before["framesLost"]
+    summary = {
+        "encoded": encoded,
+        "received": received,
+        "lost": lost,
+        "skipped": end["groupsSkipped"] - before["groupsSkipped"],
+        "timing_gaps": end["timingGaps"] - before["timingGaps"],
+        "requests": end["recovery"]["keyframeRequests"] - before["recovery"]["keyframeRequests"],
+        "frames_again_after_s": round(back_s, 2),
+    }
+    print("slow link:", json.dumps(summary))
+    assert lost >= 1 and summary["skipped"] >= 1, summary
+    # Every frame the encoder made is either received or counted lost (up to the few
+    # in flight when each side was read).
+    assert abs(received + lost - encoded) <= 6, summary
