@@ -9,6 +9,7 @@ offset from ours). No sockets, no real time: seconds of link in milliseconds.
 
 from __future__ import annotations
 
+import random
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -43,7 +44,11 @@ def simulate(
     queue_s: float = 0.1,
     controller: RateController | None = None,
     report: bool = True,
+    busy_viewer: float = 0.0,
 ) -> tuple[Run, RateController]:
+    """``busy_viewer``: the fraction of frames the viewer stamps 30-150 ms late (its
+    page's main thread was busy: the frame was there, the stamp is late)."""
+    noise = random.Random(3)
     rc = controller or RateController(CEILING, FLOOR)
     rate = float(CEILING)
     link_free_at = 0.0
@@ -64,7 +69,9 @@ def simulate(
             run.lost_at.append(now)
         else:
             link_free_at = start + size * 8 / capacity(now)
-            pending.append((pts, (link_free_at + delay_s) * 1000 + CLOCK_OFFSET_MS))
+            stamped_late = noise.uniform(30, 150) if noise.random() < busy_viewer else 0.0
+            arrival_ms = (link_free_at + delay_s) * 1000 + stamped_late
+            pending.append((pts, arrival_ms + CLOCK_OFFSET_MS))
         while report and now >= next_report:
             due = [p for p in pending if p[1] - CLOCK_OFFSET_MS <= now * 1000]
             pending = [p for p in pending if p[1] - CLOCK_OFFSET_MS > now * 1000]
@@ -88,9 +95,11 @@ def test_a_narrow_link_brings_the_rate_under_its_capacity_quickly_and_it_stays()
     late = run.between(10, 30)
     # A delay-based controller finds the limit by passing it a little (the queue that
     # builds is the signal), then steps back under it: a shallow sawtooth, no swings.
-    assert max(late) < 1.15 * 2_000_000, max(late)
+    assert max(late) < 1.25 * 2_000_000, max(late)
     assert sum(late) / len(late) > 0.8 * 2_000_000, "the rate should use most of the link"
-    assert max(late) / min(late) < 1.4, (min(late), max(late))
+    assert max(late) / min(late) < 1.5, (min(late), max(late))
+    # The probes past the limit cost a frame now and then, not a stream of them.
+    assert len([t for t in run.lost_at if t > 5]) <= 0.01 * 25 * FPS, run.lost_at
 
 
 def test_a_step_down_and_up_is_followed() -> None:
@@ -110,6 +119,11 @@ def test_an_unlimited_link_keeps_the_configured_rate() -> None:
     run, rc = simulate(lambda t: 1e12, 10)
     assert set(run.rates) == {CEILING}
     assert rc.state.players == 1
+
+
+def test_a_busy_viewer_stamping_some_frames_late_is_not_congestion() -> None:
+    run, rc = simulate(lambda t: 1e12, 20, busy_viewer=0.3)
+    assert min(run.rates) == CEILING, rc._players["viewer"].decreases
 
 
 def test_a_player_that_never_reports_gets_the_safe_rate() -> None:

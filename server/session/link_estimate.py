@@ -4,8 +4,11 @@ Delay-based, in the spirit of Google Congestion Control's receive-side estimator
 a frame's one-way delay is its arrival on the viewer's clock minus its send on
 ours. The two clocks have an unknown offset, so only changes mean anything: the
 lowest delay of the last ``BASE_WINDOW_S`` is the empty-queue path, and how far
-the recent frames sit above it is the queue that builds when we send faster
-than the path carries. A queue shows up a few frames after the rate exceeds the
+the least delayed frame of the last ``QUEUE_WINDOW_S`` sits above it is the
+queue that builds when we send faster than the path carries. The least delayed,
+not the median: a queue delays every frame, while a busy viewer (its page's
+main thread, a loaded machine) stamps some arrivals late; the minimum sees the
+first and not the second. A queue shows up a few frames after the rate exceeds the
 capacity, long before loss (a drop-tail buffer of 100 ms at a home router, or
 the relay's QUIC sender holding data back), which is why the rate controller
 reacts to it first.
@@ -25,7 +28,7 @@ from server.session.feedback import FeedbackFields
 
 BASE_WINDOW_S = 10.0  # the empty-queue delay is the lowest seen this long
 RATE_WINDOW_S = 1.0  # throughput over the last second of arrivals
-RECENT_FRAMES = 5  # queueing delay: median of this many newest frames (jitter)
+QUEUE_WINDOW_S = 0.3  # queueing delay: the least delayed frame of the last 0.3 s
 SENT_HISTORY = 1200  # frames remembered for matching reports (20 s at 60 fps)
 
 
@@ -127,7 +130,7 @@ class LinkEstimate:
     def _drop_old(self) -> None:
         if not self._arrivals:
             return
-        newest = max(a.arrival_ms for a in list(self._arrivals)[-RECENT_FRAMES:])
+        newest = self._arrivals[-1].arrival_ms
         while self._arrivals and self._arrivals[0].arrival_ms < newest - BASE_WINDOW_S * 1000:
             self._arrivals.popleft()
 
@@ -148,11 +151,11 @@ class LinkEstimate:
         return bits / max(span_ms / 1000, RATE_WINDOW_S / 2)
 
     def _queue_ms(self) -> float | None:
-        if len(self._arrivals) < RECENT_FRAMES:
+        recent = self._recent(QUEUE_WINDOW_S)
+        if len(recent) < 3:
             return None
         base = min(a.delay_ms for a in self._arrivals)
-        recent = sorted(a.delay_ms for a in list(self._arrivals)[-RECENT_FRAMES:])
-        return recent[len(recent) // 2] - base
+        return min(a.delay_ms for a in recent) - base
 
     def _queue_rising(self) -> bool:
         """The delay trend of the last half second (least squares over arrival time)

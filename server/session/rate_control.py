@@ -9,7 +9,9 @@ is a frame shown late. BBR needs to probe by overshooting, which for live video
 is a visible stall every few seconds.
 
 - **Down fast**: a growing queue (``QUEUE_OVERUSE_MS`` above the path's empty
-  delay and still rising, or ``QUEUE_HIGH_MS`` whatever the trend), heavy loss
+  delay and still rising in ``OVERUSE_REPORTS`` reports in a row, so one late
+  report from a busy page is not congestion; or ``QUEUE_HIGH_MS`` whatever the
+  trend), heavy loss
   (``LOSS_OVERUSE``) or a group the relay had to skip sets the rate to
   ``DECREASE`` times what the viewer actually received over the last second (at
   most ``DECREASE`` times the current rate), at most once per
@@ -39,8 +41,9 @@ from server.session.link_estimate import LinkEstimate, LinkSample, SendLog
 
 log = logging.getLogger(__name__)
 
-QUEUE_OVERUSE_MS = 30.0
+QUEUE_OVERUSE_MS = 25.0
 QUEUE_HIGH_MS = 120.0
+OVERUSE_REPORTS = 2
 LOSS_OVERUSE = 0.10  # video frames lost since the last report (not packets: QUIC repairs those)
 DECREASE = 0.85
 DECREASE_HOLD_S = 0.5
@@ -66,6 +69,7 @@ class _Viewer:
     congestion_rate: float | None = None  # the rate at the last decrease
     last_sample: LinkSample | None = None
     decreases: int = 0
+    overuse_reports: int = 0  # consecutive reports with a growing queue
 
 
 @dataclass(frozen=True)
@@ -177,9 +181,11 @@ class RateController:
 
     def _react(self, viewer: _Viewer, sample: LinkSample, now_s: float) -> None:
         queue = sample.queue_ms
+        growing = queue is not None and queue > QUEUE_OVERUSE_MS and sample.queue_rising
+        viewer.overuse_reports = viewer.overuse_reports + 1 if growing else 0
         congested = (
             (queue is not None and queue > QUEUE_HIGH_MS)
-            or (queue is not None and queue > QUEUE_OVERUSE_MS and sample.queue_rising)
+            or viewer.overuse_reports >= OVERUSE_REPORTS
             or sample.loss > LOSS_OVERUSE
             or sample.skipped > 0
         )
