@@ -349,7 +349,12 @@ def test_network_blackout_of_three_seconds_recovers_on_the_same_connection(
     assert end["connections"] == 1 and end["status"].startswith("subscribed"), summary
     # What was sent in the blackout is gone: the relay reset the group the page lagged in.
     assert summary["skipped"] >= 1 and summary["lost"] >= 5, summary
-    assert summary["requests"] >= 1, summary
+    # A keyframe request unless a periodic keyframe (2 s here) fell in the blackout: then
+    # the relay already holds a newer group that starts at it, and none is needed.
+    assert (
+        summary["requests"] >= 1
+        or end["recovery"]["recoveries"] == before["recovery"]["recoveries"]
+    )
     assert end["longestFreezeMs"] >= 2900, summary
     # QUIC probes the path again within its backoff; then a keyframe on request.
     assert back_s < 3.0, summary
