@@ -78,8 +78,13 @@ class LiveStack:
         frame_tap: FrameTap | None = None,
         audio: bool = False,
         sound: SoundSource | None = None,
+        rate_control: bool = True,
+        intra_refresh: bool = True,
+        relay_args: tuple[str, ...] = (),
     ) -> None:
-        """``audio``: publish sound too; ``sound``: what it plays (default: the game's)."""
+        """``audio``: publish sound too; ``sound``: what it plays (default: the game's).
+        ``rate_control``, ``intra_refresh``: the session's (StreamSettings);
+        ``relay_args``: more ``upcast relay`` options."""
         self.config = config
         self._audio = audio
         self._sound = sound
@@ -91,7 +96,9 @@ class LiveStack:
         key_path = Path(self._key_dir.name) / "relay.jwk"
         generate_key(key_path)
         self.tokens = session_tokens(load_key(key_path), broadcast)
-        self.relay = RelayProcess("::", port, web_root, auth_key=key_path)
+        self.relay = RelayProcess("::", port, web_root, auth_key=key_path, extra_args=relay_args)
+        self._rate_control = rate_control
+        self._intra_refresh = intra_refresh
         self.stack = LocalStack(config, app_sound=audio)
         self.endpoint: RelayEndpoint | None = None
         self.session: StreamingSession | None = None
@@ -154,6 +161,8 @@ class LiveStack:
             source=self.config.source,
             gamepad=self.config.gamepad,
             audio=self._audio,
+            rate_control=self._rate_control,
+            intra_refresh=self._intra_refresh,
         )
         if self._sound is None and self._audio and self.config.source == "x11":
             from server.session.pulse_monitor import PulseMonitor

@@ -57,6 +57,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--bitrate-kbps", type=int, default=None, help="encoder bitrate (default: as upcast up)"
     )
+    parser.add_argument(
+        "--rate-control",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="the session's bitrate follows the page's feedback (default: on, as upcast up)",
+    )
+    parser.add_argument(
+        "--intra-refresh",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="intra refresh instead of periodic keyframes (default: on, as upcast up)",
+    )
+    parser.add_argument(
+        "--congestion-control",
+        default=None,
+        help="the relay's QUIC congestion controller (default: the relay's, upcast-media)",
+    )
 
 
 DEFAULT_PROFILES = ("lan", "cable", "wifi", "lte", "drop")
@@ -131,6 +148,9 @@ def run(args: argparse.Namespace) -> int:
             "fps": args.fps,
             "upscaler": args.upscaler,
             "bitrate_kbps": args.bitrate_kbps,
+            "rate_control": args.rate_control,
+            "intra_refresh": args.intra_refresh,
+            "congestion_control": args.congestion_control or "relay default",
             "transport": "headless Chromium (WebTransport) -> user-space network emulator "
             "(server/net, loopback) -> relay process",
         },
@@ -141,7 +161,15 @@ def run(args: argparse.Namespace) -> int:
             for profile in profiles:
                 print(f"upcast bench network: {profile} for {args.seconds:g} s", file=sys.stderr)
                 run_ = NetworkRun(
-                    profile, args.seconds, args.warmup, args.viewers, session, bitrate
+                    profile,
+                    args.seconds,
+                    args.warmup,
+                    args.viewers,
+                    session,
+                    bitrate,
+                    rate_control=args.rate_control,
+                    intra_refresh=args.intra_refresh,
+                    congestion_control=args.congestion_control,
                 )
                 case = report.add_case(**measure(run_, browser))
                 if case["delivered_ratio"] is not None:

@@ -55,6 +55,9 @@ class NetworkRun:
     viewers: int
     session: SessionConfig
     bitrate: int | None = None
+    rate_control: bool = True
+    intra_refresh: bool = True
+    congestion_control: str | None = None  # the relay's QUIC sender; None: its default
 
 
 def _encoder_bitrate(live: LiveStack) -> int | None:
@@ -82,7 +85,16 @@ def measure(run: NetworkRun, browser: Any) -> dict[str, Any]:
     thumbs = FrameThumbs()
     name = run.profile
     with (
-        LiveStack(run.session, frame_tap=thumbs, bitrate=run.bitrate) as live,
+        LiveStack(
+            run.session,
+            frame_tap=thumbs,
+            bitrate=run.bitrate,
+            rate_control=run.rate_control,
+            intra_refresh=run.intra_refresh,
+            relay_args=()
+            if run.congestion_control is None
+            else ("--congestion-control", run.congestion_control),
+        ) as live,
         EmulatorProcess(
             listen=("localhost", 0),
             upstream=("127.0.0.1", live.port),

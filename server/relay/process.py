@@ -34,6 +34,7 @@ class RelayProcess:
         *,
         auth_key: Path | None = None,
         public_viewers: bool = True,
+        extra_args: tuple[str, ...] = (),
     ) -> None:
         """Without ``auth_key`` the relay runs with ``--no-auth`` (benchmarks on
         loopback); ``upcast up`` always passes one."""
@@ -42,6 +43,7 @@ class RelayProcess:
         self.web_root = web_root
         self.auth_key = auth_key
         self.public_viewers = public_viewers
+        self.extra_args = extra_args  # more `upcast relay` options (a benchmark's settings)
         self.proc: subprocess.Popen[bytes] | None = None
         self.endpoint: RelayEndpoint | None = None
         self.restarts = 0
@@ -60,6 +62,7 @@ class RelayProcess:
         else:
             args += ["--auth-key", str(self.auth_key)]
             args.append("--public-viewers" if self.public_viewers else "--no-public-viewers")
+        args += self.extra_args
         self.proc = subprocess.Popen(args)
         deadline = time.monotonic() + timeout_s
         while True:
