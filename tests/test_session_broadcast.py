@@ -19,11 +19,13 @@ class Harness:
         self.pipe = Pipe()
         self.inputs: list[tuple[str, bytes]] = []
         self.keyframe_requests = 0
+        self.ended: list[str] = []
         self.broadcast = GameBroadcast(
             "game",
             CATALOG,
             on_input=lambda path, payload: self.inputs.append((path, payload)),
             on_keyframe_wanted=self._want_keyframe,
+            on_input_ended=self.ended.append,
         )
         self.broadcast.attach(self.pipe.client)
         self.relay_events: list[ev.Event] = []
@@ -125,6 +127,9 @@ def test_viewer_input_broadcasts_are_subscribed_and_delivered() -> None:
     h.sync()
     requests = [e for e in h.relay_events if isinstance(e, ev.SubscribeRequested)]
     assert [(r.broadcast, r.track) for r in requests] == [("game/input/v1", "input")]
+    # A viewer's whole input is one long group: the relay must never skip it ahead
+    # because the session lagged (that lost every later message, feedback included).
+    assert requests[0].max_latency_ms >= 60_000
     request_id = requests[0].request_id
     assert h.pipe.server.accept_subscribe(request_id)
     group = h.pipe.server.open_group(request_id, 0)
@@ -137,3 +142,4 @@ def test_viewer_input_broadcasts_are_subscribed_and_delivered() -> None:
     h.sync()
     assert h.broadcast.stats.input_broadcasts == 1
     assert h.broadcast._input_paths == {}
+    assert h.ended == ["game/input/v1"]

@@ -64,6 +64,7 @@ TRACKS = (CATALOG_TRACK, VIDEO_TRACK, TIMING_TRACK, STATUS_TRACK, AUDIO_TRACK)
 # A broadcast without sound refuses ``audio`` like any unknown track.
 SILENT_TRACKS = (CATALOG_TRACK, VIDEO_TRACK, TIMING_TRACK, STATUS_TRACK)
 AUDIO_GROUP_FRAMES = 10  # 100 ms of Opus per group: what a joining viewer may wait for
+INPUT_MAX_LATENCY_MS = 60_000
 MAX_INPUT_BROADCASTS = 64  # viewers sending input at once; more are ignored (and logged)
 
 
@@ -227,7 +228,14 @@ class GameBroadcast:
             if len(self._input_paths) >= MAX_INPUT_BROADCASTS:
                 log.warning("ignoring input broadcast %s: %d already", path, len(self._input_paths))
                 return
-            subscription = session.subscribe(path, INPUT_TRACK, priority=255)
+            # A long max latency: a relay skips a lagging subscriber's current group,
+            # and a page sends all its input in one long group, so a skip (the
+            # session's loop stalled half a second on a loaded machine) would lose
+            # every later input and feedback message from that viewer. Input is tiny;
+            # late is better than never.
+            subscription = session.subscribe(
+                path, INPUT_TRACK, priority=255, max_latency_ms=INPUT_MAX_LATENCY_MS
+            )
             self._inputs[subscription] = path
             self._input_paths[path] = subscription
             self.stats.input_broadcasts += 1
