@@ -45,6 +45,8 @@ def simulate(
     controller: RateController | None = None,
     report: bool = True,
     busy_viewer: float = 0.0,
+    stall_every_s: float | None = None,
+    stall_s: float = 0.4,
 ) -> tuple[Run, RateController]:
     """``busy_viewer``: the fraction of frames the viewer stamps 30-150 ms late (its
     page's main thread was busy: the frame was there, the stamp is late)."""
@@ -71,6 +73,10 @@ def simulate(
             link_free_at = start + size * 8 / capacity(now)
             stamped_late = noise.uniform(30, 150) if noise.random() < busy_viewer else 0.0
             arrival_ms = (link_free_at + delay_s) * 1000 + stamped_late
+            if stall_every_s is not None:
+                phase = (arrival_ms / 1000) % stall_every_s
+                if phase < stall_s:
+                    arrival_ms += (stall_s - phase) * 1000
             pending.append((pts, arrival_ms + CLOCK_OFFSET_MS))
         while report and now >= next_report:
             due = [p for p in pending if p[1] - CLOCK_OFFSET_MS <= now * 1000]
@@ -123,6 +129,14 @@ def test_an_unlimited_link_keeps_the_configured_rate() -> None:
 
 def test_a_busy_viewer_stamping_some_frames_late_is_not_congestion() -> None:
     run, rc = simulate(lambda t: 1e12, 20, busy_viewer=0.3)
+    assert min(run.rates) == CEILING, rc._players["viewer"].decreases
+
+
+def test_a_viewer_whose_thread_stalls_now_and_then_is_not_congestion() -> None:
+    run, rc = simulate(lambda t: 1e12, 20, stall_every_s=2.0)
+    assert min(run.rates) == CEILING, rc._players["viewer"].decreases
+    # Even a stall long enough to delay every frame of a report (0.8 s).
+    run, rc = simulate(lambda t: 1e12, 20, stall_every_s=3.0, stall_s=0.8)
     assert min(run.rates) == CEILING, rc._players["viewer"].decreases
 
 

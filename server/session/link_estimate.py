@@ -75,6 +75,10 @@ class LinkSample:
     delivered_bps: float | None
     queue_ms: float | None
     queue_rising: bool
+    # How much longer the last second of frames took to arrive than to be sent: above 1
+    # the path is slower than the stream (a queue grows); a busy viewer stamping a few
+    # frames late stretches nothing over a second, so this tells the two apart.
+    stretch: float | None
     loss: float  # fraction of video frames lost since the previous report
     skipped: int  # groups skipped since the previous report
     freezes: int  # freezes since the previous report
@@ -85,6 +89,7 @@ class _Arrival:
     arrival_ms: float
     delay_ms: float  # arrival (viewer clock) - send (our clock): offset unknown, constant
     size: int
+    sent_ms: float
 
 
 class LinkEstimate:
@@ -108,12 +113,14 @@ class LinkEstimate:
                 continue
             self._remember(pts)
             self.frames_matched += 1
-            self._arrivals.append(_Arrival(arrival_ms, arrival_ms - sent.sent_s * 1000, sent.size))
+            sent_ms = sent.sent_s * 1000
+            self._arrivals.append(_Arrival(arrival_ms, arrival_ms - sent_ms, sent.size, sent_ms))
         self._drop_old()
         sample = LinkSample(
             delivered_bps=self._delivered_bps(),
             queue_ms=self._queue_ms(),
             queue_rising=self._queue_rising(),
+            stretch=self._stretch(),
             loss=self._loss(fields),
             skipped=max(0, fields.skipped - self._last_counts.skipped),
             freezes=max(0, fields.freezes - self._last_counts.freezes),
@@ -156,6 +163,16 @@ class LinkEstimate:
             return None
         base = min(a.delay_ms for a in self._arrivals)
         return min(a.delay_ms for a in recent) - base
+
+    def _stretch(self) -> float | None:
+        recent = self._recent(RATE_WINDOW_S)
+        if len(recent) < 4:
+            return None
+        sent = [a.sent_ms for a in recent]
+        send_span = max(sent) - min(sent)
+        if send_span < RATE_WINDOW_S * 1000 / 4:
+            return None
+        return (recent[-1].arrival_ms - recent[0].arrival_ms) / send_span
 
     def _queue_rising(self) -> bool:
         """The delay trend of the last half second (least squares over arrival time)

@@ -9,9 +9,10 @@ is a frame shown late. BBR needs to probe by overshooting, which for live video
 is a visible stall every few seconds.
 
 - **Down fast**: a growing queue (``QUEUE_OVERUSE_MS`` above the path's empty
-  delay and still rising in ``OVERUSE_REPORTS`` reports in a row, so one late
-  report from a busy page is not congestion; or ``QUEUE_HIGH_MS`` whatever the
-  trend), heavy loss
+  delay, still rising, and the last second of frames taking ``STRETCH_OVERUSE``
+  times longer to arrive than to be sent) or a high one (``QUEUE_HIGH_MS``), in
+  ``OVERUSE_REPORTS`` reports in a row, so a busy page stamping a few frames late
+  is not congestion; heavy loss
   (``LOSS_OVERUSE``) or a group the relay had to skip sets the rate to
   ``DECREASE`` times what the viewer actually received over the last second (at
   most ``DECREASE`` times the current rate), at most once per
@@ -44,6 +45,7 @@ log = logging.getLogger(__name__)
 QUEUE_OVERUSE_MS = 25.0
 QUEUE_HIGH_MS = 120.0
 OVERUSE_REPORTS = 2
+STRETCH_OVERUSE = 1.03
 LOSS_OVERUSE = 0.10  # video frames lost since the last report (not packets: QUIC repairs those)
 DECREASE = 0.85
 DECREASE_HOLD_S = 0.5
@@ -181,11 +183,12 @@ class RateController:
 
     def _react(self, viewer: _Viewer, sample: LinkSample, now_s: float) -> None:
         queue = sample.queue_ms
-        growing = queue is not None and queue > QUEUE_OVERUSE_MS and sample.queue_rising
-        viewer.overuse_reports = viewer.overuse_reports + 1 if growing else 0
+        slower = sample.stretch is None or sample.stretch > STRETCH_OVERUSE
+        growing = queue is not None and queue > QUEUE_OVERUSE_MS and sample.queue_rising and slower
+        high = queue is not None and queue > QUEUE_HIGH_MS
+        viewer.overuse_reports = viewer.overuse_reports + 1 if growing or high else 0
         congested = (
-            (queue is not None and queue > QUEUE_HIGH_MS)
-            or viewer.overuse_reports >= OVERUSE_REPORTS
+            viewer.overuse_reports >= OVERUSE_REPORTS
             or sample.loss > LOSS_OVERUSE
             or sample.skipped > 0
         )
