@@ -20,6 +20,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from server.commands.link_flags import add_link_arguments
 from server.ops.browser_paths import WEB_ROOT
 from server.stack.args import add_session_arguments, session_config_from
 
@@ -58,20 +59,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--bitrate-kbps", type=int, default=None, help="video bitrate")
     parser.add_argument("--gop-seconds", type=float, default=2.0, help="keyframe interval")
-    parser.add_argument(
-        "--rate-control",
-        action=argparse.BooleanOptionalAction,
-        default=True,
-        help="the bitrate follows the player's link, reported by its page (default: on;"
-        " the configured bitrate is the ceiling; --no-rate-control: fixed bitrate)",
-    )
-    parser.add_argument(
-        "--intra-refresh",
-        action=argparse.BooleanOptionalAction,
-        default=True,
-        help="refresh the picture in sweeps of intra blocks every --gop-seconds instead of"
-        " periodic keyframes (default: on; keyframes still come on demand)",
-    )
+    add_link_arguments(parser)
     parser.add_argument(
         "--auth-key", type=Path, default=None, help="JWK key that signs the sessions' tokens"
     )

@@ -17,6 +17,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from server.commands.link_flags import add_link_arguments
 from server.ops.browser_paths import WEB_ROOT
 from server.stack.args import add_session_arguments, session_config_from
 
@@ -50,20 +51,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=True,
         help="publish the game's sound as an Opus track (default: on; --no-audio: video only)",
     )
-    parser.add_argument(
-        "--rate-control",
-        action=argparse.BooleanOptionalAction,
-        default=True,
-        help="the bitrate follows the player's link, reported by its page (default: on;"
-        " the configured bitrate is the ceiling; --no-rate-control: fixed bitrate)",
-    )
-    parser.add_argument(
-        "--intra-refresh",
-        action=argparse.BooleanOptionalAction,
-        default=True,
-        help="refresh the picture in sweeps of intra blocks every --gop-seconds instead of"
-        " periodic keyframes (default: on; keyframes still come on demand)",
-    )
+    add_link_arguments(parser)
     parser.add_argument(
         "--metrics-port",
         type=int,
