@@ -12,7 +12,8 @@ median and p95. A chunk that never arrived counts as late. Cases run interleaved
 
 The link: a FIFO bottleneck at the given rate with a queue of ``--queue-ms``,
 random loss before the queue, half the RTT of propagation each way, both
-directions shaped alike. Sender and receiver share one clock (one process).
+directions shaped alike. The link ``0/0/0`` is plain loopback (no forwarder), to
+check that the controller costs nothing where the network is not the limit. Sender and receiver share one clock (one process).
 """
 
 from __future__ import annotations
@@ -51,6 +52,8 @@ class LinkSpec:
 
     @property
     def label(self) -> str:
+        if self.rate_mbit <= 0:
+            return "loopback"
         return f"{self.rate_mbit:g}mbit_{self.rtt_ms:g}ms_{100 * self.loss:g}pct"
 
 
@@ -58,6 +61,7 @@ DEFAULT_LINKS = (
     LinkSpec(8.0, 30.0, 0.01),
     LinkSpec(4.0, 60.0, 0.02),
     LinkSpec(20.0, 15.0, 0.0),
+    LinkSpec(0.0, 0.0, 0.0),  # plain loopback: no forwarder
 )
 
 
@@ -206,7 +210,8 @@ async def measure(
     grace_s: float = 1.0,
 ) -> Transfer:
     """Send `rate_mbit` of chunks for `seconds` over `link` with `algorithm`
-    controlling the sender; wait up to `grace_s` afterwards for stragglers."""
+    controlling the sender; wait up to `grace_s` afterwards for stragglers. A link
+    of rate 0 is plain loopback, no forwarder."""
     transfer = Transfer(algorithm, link, seconds)
     chunk_bytes = int(rate_mbit * 1e6 / 8 * FRAME_INTERVAL_S)
     done = asyncio.Event()
@@ -225,10 +230,13 @@ async def measure(
     assert server._transport is not None
     server_port = server._transport.get_extra_info("sockname")[1]
     loop = asyncio.get_running_loop()
-    link_transport, _ = await loop.create_datagram_endpoint(
-        lambda: LossyLink(link, ("127.0.0.1", server_port), seed), local_addr=("127.0.0.1", 0)
-    )
-    link_port = link_transport.get_extra_info("sockname")[1]
+    link_transport: asyncio.DatagramTransport | None = None
+    port = server_port
+    if link.rate_mbit > 0:
+        link_transport, _ = await loop.create_datagram_endpoint(
+            lambda: LossyLink(link, ("127.0.0.1", server_port), seed), local_addr=("127.0.0.1", 0)
+        )
+        port = link_transport.get_extra_info("sockname")[1]
     client_config = QuicConfiguration(
         alpn_protocols=[ALPN],
         is_client=True,
@@ -243,7 +251,7 @@ async def measure(
 
     try:
         async with connect(
-            "127.0.0.1", link_port, configuration=client_config, create_protocol=create_receiver
+            "127.0.0.1", port, configuration=client_config, create_protocol=create_receiver
         ):
             async with asyncio.timeout(seconds + 10):
                 await done.wait()
@@ -251,7 +259,8 @@ async def measure(
             while len(transfer.arrived) < len(transfer.sent) and loop.time() < deadline:
                 await asyncio.sleep(0.02)
     finally:
-        link_transport.close()
+        if link_transport is not None:
+            link_transport.close()
         server.close()
     return transfer
 
@@ -266,7 +275,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--links",
         default=",".join(f"{x.rate_mbit:g}/{x.rtt_ms:g}/{x.loss:g}" for x in DEFAULT_LINKS),
-        help="links as MBIT/RTT_MS/LOSS, comma-separated",
+        help="links as MBIT/RTT_MS/LOSS, comma-separated; 0/0/0 is plain loopback",
     )
     parser.add_argument("--rate-mbit", type=float, default=6.0, help="video rate offered")
     parser.add_argument(
@@ -328,7 +337,9 @@ def run(args: argparse.Namespace) -> int:
     )
     print(f"{'link':22} {'algorithm':13} {'goodput':>8} {'on time':>8} {'p50 ms':>8} {'p95 ms':>8}")
     for link in links:
-        rate_mbit = min(args.rate_mbit, args.load * link.rate_mbit)
+        rate_mbit = args.rate_mbit
+        if link.rate_mbit > 0:
+            rate_mbit = min(rate_mbit, args.load * link.rate_mbit)
         runs: dict[str, list[Transfer]] = {a: [] for a in algorithms}
         for repeat in range(args.repeats):
             for algorithm in algorithms:

@@ -12,12 +12,16 @@ The model, in the spirit of BBR (a rate estimate, not a loss-driven window):
   of the send and the ACK interval. A windowed **max filter** (``BW_WINDOW_S``)
   keeps the bottleneck estimate ``bw``; a 10 s **min filter** keeps ``min_rtt``.
 - **Window** ``cwnd = CWND_GAIN * bw * (min_rtt + ACK_ALLOWANCE_S)``, at least
-  ``MIN_WINDOW_PACKETS``. aioquic paces at ``cwnd / srtt``, so pacing follows the
-  estimate: about 2.5x ``bw`` on an empty queue, ``bw`` when our own queue stands.
-  The same gain makes the sender probe: while a link has room, each round's samples
-  are higher and the window doubles per round trip (no separate slow start).
-  ``ACK_ALLOWANCE_S`` covers ACK aggregation and event-loop stalls, which on
-  loopback dwarf the path's RTT (and would otherwise starve the window).
+  ``MIN_WINDOW_PACKETS``. aioquic paces at ``cwnd / srtt`` (a controller cannot
+  set the pacing rate itself), so pacing follows the estimate: a few times ``bw``
+  on an empty queue, which spreads a video frame's burst, and ``bw`` once our own
+  queue stands. The same gain makes the sender probe: while a link has room, each
+  round's samples are higher and the window at least doubles per round trip (no
+  separate slow start). ``ACK_ALLOWANCE_S`` (40 ms) covers the peer's ACK delay
+  (QUIC's default max_ack_delay is 25 ms) and event-loop stalls of a busy host,
+  which on loopback dwarf the path's RTT and would otherwise starve the window;
+  the price is a standing queue of up to ~2 x (min_rtt + 40 ms) for a bulk sender,
+  which video, app-limited below the link, does not build.
 
 How it reacts:
 
@@ -25,16 +29,24 @@ How it reacts:
   bytes; the window does not move.
 - **Sustained loss above ``LOSS_THRESHOLD`` (10 %)**, measured over at least a
   round trip and ``LOSS_MIN_PACKETS`` packets so a few unlucky drops never count:
-  a rate cap ``bw_cap`` is set to ``LOSS_BACKOFF`` (0.7) x the estimate, each such
-  round again; every clean round lets it grow by ``CAP_GROWTH`` until it no longer
-  binds. The cap is needed because the samples of a lossy but idle link stay high.
-- **Queueing delay growth**: a round whose smallest RTT exceeds what our own window
-  can queue (``QUEUE_RTT_FACTOR`` x the window's RTT term) means the estimate is
-  stale (the link slowed down) or someone else fills the queue. The max filter is
-  reset to the best sample of that round, what the full link actually delivered.
-- **Rate drop from 20 to 2 Mbit/s**: the queue builds within a round, the delay
-  rule fires and the window follows the 2 Mbit/s samples; the max filter forgets
-  the old rate within ``BW_WINDOW_S`` anyway. About 1 s in all.
+  a cap ``window_cap`` on the window is set to ``LOSS_BACKOFF`` (0.7) x the window,
+  once per loss episode (losses of packets sent before the cut are the same
+  event, as in Reno's recovery period); every clean round lets it grow by
+  ``CAP_GROWTH_PACKETS`` (Reno's pace) until it no longer binds. A cap on bytes
+  in flight, not on the rate, as BBRv2's inflight_hi: the delivery samples of a
+  lossy link stay high, and what overflows a shallow buffer (a receiver's socket
+  on a busy host among them) is the burst the window allows.
+- **Queueing delay growth**: when every RTT sample for a while (our window's RTT
+  term, at least ``QUEUE_MIN_PERIOD_S``) exceeds what our own window can queue
+  (``QUEUE_RTT_FACTOR`` x ``CWND_GAIN`` x (min_rtt + allowance)), the estimate is
+  stale (the link slowed down) or others fill the queue. The estimate drops to the
+  rate delivered meanwhile (through the full queue: the link's rate), at most
+  halving per period: averaged over the period rather than per ACK, and bounded,
+  because a busy host that holds ACKs for 100 ms looks like a queue too.
+- **Rate drop from 20 to 2 Mbit/s**: the queue builds, the delay rule halves the
+  estimate every ~0.2 s down to the delivered rate; the max filter would forget
+  the old rate within ``BW_WINDOW_S`` anyway. About 1.5 s in all (simulated: the
+  estimate reaches 2.0 Mbit/s 1.75 s after the drop through a deep buffer).
 - **Persistent congestion** (e.g. 3 s of 100 % loss): the window collapses to the
   minimum, the estimate and the cap are forgotten; growth restarts from the first
   ACKs and doubles per round trip.
@@ -74,7 +86,7 @@ MIN_RTT_WINDOW_S = 10.0
 LOSS_THRESHOLD = 0.10
 LOSS_MIN_PACKETS = 32
 LOSS_BACKOFF = 0.7
-CAP_GROWTH = 1.25
+CAP_GROWTH_PACKETS = 1
 QUEUE_RTT_FACTOR = 1.25
 QUEUE_MIN_PERIOD_S = 0.2
 QUEUE_MAX_CUT = 0.5
@@ -127,7 +139,7 @@ class MediaCongestionControl(QuicCongestionControl):
         self._mss = max_datagram_size
         self.min_window = MIN_WINDOW_PACKETS * max_datagram_size
         self.bw_filter = WindowedMax(BW_WINDOW_S)
-        self.bw_cap = math.inf
+        self.window_cap = math.inf  # bytes in flight, set by heavy loss
         self.min_rtt = math.inf
         self._min_rtt_stamp = 0.0
         self._sent: dict[tuple[Epoch, int], _SendState] = {}
@@ -137,6 +149,7 @@ class MediaCongestionControl(QuicCongestionControl):
         self._first_sent_time = 0.0
         self._last_sent_time: float | None = None
         self._app_limited_until = 0
+        self._now = 0.0  # of the latest ACK
         # round trips: a round ends when a packet sent after it began is acked
         self.rounds = 0
         self._next_round_delivered = 0
@@ -146,19 +159,24 @@ class MediaCongestionControl(QuicCongestionControl):
         # loss accounting over at least one round and LOSS_MIN_PACKETS packets
         self._loss_acked = 0
         self._loss_lost = 0
+        self._backoff_time = -math.inf  # losses of packets sent before it were answered
 
     # -- the estimate --------------------------------------------------------
 
     @property
     def bandwidth(self) -> float:
-        """The rate the window is built on, bytes per second."""
-        return min(self.bw_filter.value, self.bw_cap)
+        """The bottleneck rate estimate, bytes per second."""
+        return self.bw_filter.value
+
+    def _model_window(self) -> float:
+        if self.bandwidth <= 0 or math.isinf(self.min_rtt):
+            return math.inf  # nothing measured yet
+        return CWND_GAIN * self.bandwidth * (self.min_rtt + ACK_ALLOWANCE_S)
 
     def _update_window(self) -> None:
-        bw = self.bandwidth
-        if bw <= 0 or math.isinf(self.min_rtt):
+        target = min(self._model_window(), self.window_cap)
+        if math.isinf(target):
             return  # nothing measured yet: keep the initial (or collapsed) window
-        target = CWND_GAIN * bw * (self.min_rtt + ACK_ALLOWANCE_S)
         self.congestion_window = max(self.min_window, int(target))
 
     # -- aioquic's interface ---------------------------------------------------
@@ -184,6 +202,7 @@ class MediaCongestionControl(QuicCongestionControl):
         self._delivered_time = now
         self._loss_acked += 1
         state = self._sent.pop((packet.epoch, packet.packet_number), None)
+        self._now = now
         if self._app_limited_until and self.delivered > self._app_limited_until:
             self._app_limited_until = 0
         if state is None or packet.sent_time is None:
@@ -209,11 +228,12 @@ class MediaCongestionControl(QuicCongestionControl):
         for packet in packets:
             self.bytes_in_flight -= packet.sent_bytes
             self._sent.pop((packet.epoch, packet.packet_number), None)
-            self._loss_lost += 1
+            if packet.sent_time is not None and packet.sent_time > self._backoff_time:
+                self._loss_lost += 1
 
     def on_persistent_congestion(self) -> None:
         self.bw_filter.reset(0.0, 0.0)
-        self.bw_cap = math.inf
+        self.window_cap = math.inf
         self._loss_acked = self._loss_lost = 0
         self.congestion_window = self.min_window
 
@@ -256,11 +276,14 @@ class MediaCongestionControl(QuicCongestionControl):
         counted = self._loss_acked + self._loss_lost
         lossy = self._loss_lost > LOSS_THRESHOLD * max(counted, LOSS_MIN_PACKETS)
         if lossy:
-            self.bw_cap = LOSS_BACKOFF * self.bandwidth
-        elif self.bw_cap < math.inf:
-            self.bw_cap *= CAP_GROWTH
-            if self.bw_cap > self.bw_filter.value:
-                self.bw_cap = math.inf
+            # once per loss episode, as Reno's recovery period: the rest of a burst
+            # of drops (packets sent before now) is the same event
+            self.window_cap = max(self.min_window, LOSS_BACKOFF * self.congestion_window)
+            self._backoff_time = self._now
+        elif self.window_cap < math.inf:
+            self.window_cap += CAP_GROWTH_PACKETS * self._mss
+            if self.window_cap > self._model_window():
+                self.window_cap = math.inf
         if lossy or counted >= LOSS_MIN_PACKETS:
             self._loss_acked = self._loss_lost = 0
         self._update_window()
