@@ -13,7 +13,8 @@ median and p95. A chunk that never arrived counts as late. Cases run interleaved
 The link: a FIFO bottleneck at the given rate with a queue of ``--queue-ms``,
 random loss before the queue, half the RTT of propagation each way, both
 directions shaped alike. The link ``0/0/0`` is plain loopback (no forwarder), to
-check that the controller costs nothing where the network is not the limit. Sender and receiver share one clock (one process).
+check that the controller costs nothing where the network is not the limit.
+Sender and receiver share one clock (one process).
 """
 
 from __future__ import annotations
