@@ -193,3 +193,25 @@ def test_spectators_do_not_set_the_rate_and_a_player_that_left_is_forgotten() ->
     rc.feedback("spectator", spectator, 6.2)
     assert rc.update(7.0) is None
     assert rc.state.bitrate == CEILING
+
+
+def test_nothing_arriving_means_the_safe_rate_not_a_cut_to_zero() -> None:
+    rc = RateController(CEILING, FLOOR)
+    _run, rc = simulate(lambda t: 1e12, 5, controller=rc)
+    # Reports keep coming (the uplink works) but bring no frame while we send.
+    for i in range(12):
+        now = 5.0 + i * 0.25
+        rc.frame_sent(50_000_000 + i * 33_333, 20_000, now)
+        rc.feedback("viewer", FeedbackFields(player=True), now)
+        rc.update(now)
+    assert rc.state.bitrate == int(CEILING * SAFE_FRACTION), rc.state
+
+
+def test_a_skip_while_joining_is_not_congestion_but_later_it_is() -> None:
+    rc = RateController(CEILING, FLOOR)
+    rc.frame_sent(0, 20_000, 0.0)
+    rc.feedback("viewer", FeedbackFields(player=True, frames=[(0, 10.0)], skipped=1), 0.5)
+    assert rc.update(0.6) is None  # the relay replayed an old group and skipped it
+    rc.feedback("viewer", FeedbackFields(player=True, skipped=2), 4.0)
+    assert rc.update(4.1) is not None
+    assert rc.state.reason == "congestion"

@@ -28,6 +28,7 @@ from server.session.feedback import MAX_FEEDBACK_FRAMES
 from server.session.viewer_input import MAX_MESSAGE_BYTES
 
 INPUT_TRACK = "input"
+KEYFRAME_EVERY_MS = 1000.0  # keyframe requests: at most one a second while stuck
 
 
 @dataclass(frozen=True)
@@ -57,6 +58,9 @@ class FeedbackSender:
         self._frames: deque[tuple[int, float]] = deque(maxlen=MAX_FEEDBACK_FRAMES)
         self._groups: dict[int, int | None] = {}  # request id -> open group stream
         self._next_group = 0
+        self._last_counts = FeedbackCounts()
+        self._last_keyframe_ms = -1e12
+        self.keyframe_requests = 0
 
     def publish(self, moq: MoqSession) -> None:
         moq.publish(self.path)
@@ -103,12 +107,32 @@ class FeedbackSender:
                 return wire
             frames = frames[len(frames) // 4 + 1 :]
 
-    def send(self, moq: MoqSession, counts: FeedbackCounts) -> bool:
-        """Write one message to every subscriber; False when nobody subscribes yet (the
-        frames wait for the next try). The caller flushes the link."""
+    def wants_keyframe(self, counts: FeedbackCounts, stalled: bool, now_ms: float) -> bool:
+        """Ask for a keyframe, as the page does (client_web/src/recovery.ts): a group
+        was skipped or a frame lost since the last message, or nothing has arrived for
+        a while (the relay reset our group; under intra refresh the next group starts
+        only at a requested IDR). At most one request per ``KEYFRAME_EVERY_MS``."""
+        last, self._last_counts = self._last_counts, counts
+        broke = counts.skipped > last.skipped or counts.lost > last.lost
+        if not (broke or stalled) or now_ms - self._last_keyframe_ms < KEYFRAME_EVERY_MS:
+            return False
+        self._last_keyframe_ms = now_ms
+        return True
+
+    def send(self, moq: MoqSession, counts: FeedbackCounts, *, stalled: bool = False) -> bool:
+        """Write one message to every subscriber, and a keyframe request when
+        ``wants_keyframe`` says so; False when nobody subscribes yet (the frames wait for
+        the next try). The caller flushes the link."""
         if not self._groups or moq.closed:
             return False
         wire = self.message(counts)
+        if self.wants_keyframe(counts, stalled, monotonic_ms()):
+            self._seq += 1
+            request = {"type": "keyframe", "seq": self._seq}
+            wire_keyframe = json.dumps(request, separators=(",", ":")).encode()
+            self.keyframe_requests += 1
+        else:
+            wire_keyframe = None
         written = False
         for request_id, stream in list(self._groups.items()):
             if moq.request(request_id) is None:  # the subscription ended meanwhile
@@ -121,6 +145,8 @@ class FeedbackSender:
                 if stream is None or not moq.write_frame(stream, wire):
                     self._groups[request_id] = None
                     continue
+            if wire_keyframe is not None:
+                moq.write_frame(stream, wire_keyframe)
             written = True
         if written:
             self.sent += 1

@@ -52,6 +52,8 @@ from .viewer_stats import ViewerStats
 
 log = logging.getLogger(__name__)
 
+STALLED_S = 1.0  # no video frame for this long: ask for a keyframe (with feedback on)
+
 CATALOG_TRACK = "catalog.json"
 TIMING_TRACK = "timing"
 PROGRESS_INTERVAL_S = 1.0
@@ -158,7 +160,9 @@ class LoadViewer:
             freezes=d.freezes,
             freeze_ms=d.freeze_ms,
         )
-        if sender.send(link.moq, counts):
+        last = d.last_arrival_s
+        stalled = last is not None and time.monotonic() - last > STALLED_S
+        if sender.send(link.moq, counts, stalled=stalled):
             link.flush()
 
     # -- events --------------------------------------------------------------------

@@ -73,6 +73,11 @@ class DeliveryCounters:
     _last_arrival_s: float | None = None
 
     @property
+    def last_arrival_s(self) -> float | None:
+        """When the newest video frame arrived (time.monotonic()), None before any."""
+        return self._last_arrival_s
+
+    @property
     def skipped(self) -> int:
         """What the feedback message calls skipped: every group not played to its end."""
         return self.skipped_groups + self.reset_groups

@@ -28,6 +28,7 @@ from server.session.feedback import FeedbackFields
 
 BASE_WINDOW_S = 10.0  # the empty-queue delay is the lowest seen this long
 RATE_WINDOW_S = 1.0  # throughput over the last second of arrivals
+STALL_S = 1.0  # reports without a new frame for this long, while we send: nothing arrives
 QUEUE_WINDOW_S = 0.3  # queueing delay: the least delayed frame of the last 0.3 s
 SENT_HISTORY = 1200  # frames remembered for matching reports (20 s at 60 fps)
 
@@ -82,6 +83,14 @@ class LinkSample:
     loss: float  # fraction of video frames lost since the previous report
     skipped: int  # groups skipped since the previous report
     freezes: int  # freezes since the previous report
+    # Reports have brought no new frame for STALL_S while the session sent: the viewer
+    # receives nothing (an outage, or a reset group it waits to replace). The delay
+    # figures above are then None: they would describe frames from before.
+    stalled: bool = False
+    # The viewer's own byte counter over the time between its last two reports (our
+    # clock), never more than we sent meanwhile: a throughput figure even when too few
+    # frames arrived to time them (heavy loss), only ever too low if it lies.
+    reported_bps: float | None = None
 
 
 @dataclass
@@ -100,10 +109,13 @@ class LinkEstimate:
         self._seen: set[int] = set()
         self._seen_order: deque[int] = deque()
         self._last_counts = FeedbackFields()
+        self._last_new_frame_s: float | None = None
+        self._last_report_s: float | None = None
         self.frames_matched = 0
         self.frames_unverified = 0  # reported pts the session never sent (or forgot)
 
-    def report(self, fields: FeedbackFields, log: SendLog) -> LinkSample:
+    def report(self, fields: FeedbackFields, log: SendLog, now_s: float) -> LinkSample:
+        matched = self.frames_matched
         for pts, arrival_ms in fields.frames:
             if pts in self._seen:
                 continue
@@ -116,17 +128,38 @@ class LinkEstimate:
             sent_ms = sent.sent_s * 1000
             self._arrivals.append(_Arrival(arrival_ms, arrival_ms - sent_ms, sent.size, sent_ms))
         self._drop_old()
-        sample = LinkSample(
+        fresh = self.frames_matched > matched
+        if fresh or self._last_new_frame_s is None:
+            self._last_new_frame_s = now_s
+        quiet_s = now_s - self._last_new_frame_s
+        sending = log.bits_per_second(now_s, STALL_S) > 0
+        loss = self._loss(fields)
+        reported = self._reported_bps(fields, log, now_s)
+        skipped = max(0, fields.skipped - self._last_counts.skipped)
+        freezes = max(0, fields.freezes - self._last_counts.freezes)
+        self._last_counts = fields.model_copy(update={"frames": []})
+        if not fresh:
+            return LinkSample(
+                delivered_bps=None,
+                queue_ms=None,
+                queue_rising=False,
+                stretch=None,
+                loss=loss,
+                skipped=skipped,
+                freezes=freezes,
+                stalled=quiet_s >= STALL_S and sending,
+                reported_bps=reported,
+            )
+        return LinkSample(
             delivered_bps=self._delivered_bps(),
             queue_ms=self._queue_ms(),
             queue_rising=self._queue_rising(),
             stretch=self._stretch(),
-            loss=self._loss(fields),
-            skipped=max(0, fields.skipped - self._last_counts.skipped),
-            freezes=max(0, fields.freezes - self._last_counts.freezes),
+            loss=loss,
+            skipped=skipped,
+            freezes=freezes,
+            reported_bps=reported,
         )
-        self._last_counts = fields.model_copy(update={"frames": []})
-        return sample
 
     def _remember(self, pts: int) -> None:
         self._seen.add(pts)
@@ -163,6 +196,14 @@ class LinkEstimate:
             return None
         base = min(a.delay_ms for a in self._arrivals)
         return min(a.delay_ms for a in recent) - base
+
+    def _reported_bps(self, fields: FeedbackFields, log: SendLog, now_s: float) -> float | None:
+        last_s, self._last_report_s = self._last_report_s, now_s
+        if last_s is None or now_s - last_s < 0.05 or fields.bytes == 0:
+            return None  # no interval yet, or a viewer that does not count bytes
+        interval = now_s - last_s
+        got = max(0, fields.bytes - self._last_counts.bytes) * 8 / interval
+        return min(got, log.bits_per_second(now_s, interval))
 
     def _stretch(self) -> float | None:
         recent = self._recent(RATE_WINDOW_S)

@@ -23,6 +23,8 @@ is a visible stall every few seconds.
   (GCC's near-convergence mode: the link's limit is probably there), never
   above ``PROBE_HEADROOM`` times what the viewer received (an app-limited stream
   cannot prove more) nor the configured bitrate.
+- **Nothing arrives** (reports without a new frame for a second while we send):
+  the safe rate below, then up from there once frames flow.
 - **No feedback**: a player that sends input but no feedback (an old page), or
   whose feedback stopped for ``STALE_S`` (its link died, or it lies by silence),
   gets ``SAFE_FRACTION`` of the configured rate until it reports again. With no
@@ -50,14 +52,15 @@ LOSS_OVERUSE = 0.10  # video frames lost since the last report (not packets: QUI
 DECREASE = 0.85
 DECREASE_HOLD_S = 0.5
 INCREASE_HOLD_S = 1.0
-INCREASE_PER_S = 0.12  # multiplicative, far from the last congestion
+INCREASE_PER_S = 0.2  # multiplicative, far from the last congestion
 ADDITIVE_PER_S = 0.04  # of the rate at the last congestion, per second, near it
 NEAR_CONGESTION = 0.15  # within this fraction of the rate at the last decrease...
-CONGESTION_MEMORY_S = 3.0  # ...which happened less than this long ago
+CONGESTION_MEMORY_S = 6.0  # ...which happened less than this long ago
 PROBE_HEADROOM = 1.5
 STALE_S = 2.0
 SILENT_PLAYER_S = 3.0  # input without any feedback for this long: an old page
 SAFE_FRACTION = 0.25
+JOIN_GRACE_S = 3.0  # a skip this soon after a player's first report is its joining
 CHANGE_STEP = 0.03  # tell the encoder only about changes larger than this
 
 
@@ -66,6 +69,7 @@ class _Viewer:
     estimate: LinkEstimate = field(default_factory=LinkEstimate)
     first_seen_s: float = 0.0
     last_report_s: float | None = None
+    first_report_s: float | None = None
     rate: float = 0.0  # this viewer's allowed rate
     last_decrease_s: float = -1e9
     congestion_rate: float | None = None  # the rate at the last decrease
@@ -113,12 +117,14 @@ class RateController:
     def feedback(self, source: str, fields: FeedbackFields, now_s: float) -> None:
         if not fields.player and source not in self._players:
             spectator = self._spectators.setdefault(source, LinkEstimate())
-            spectator.report(fields, self.sent)
+            spectator.report(fields, self.sent, now_s)
             return
         self.input_seen(source, now_s)
         viewer = self._players[source]
         viewer.last_report_s = now_s
-        viewer.last_sample = viewer.estimate.report(fields, self.sent)
+        if viewer.first_report_s is None:
+            viewer.first_report_s = now_s
+        viewer.last_sample = viewer.estimate.report(fields, self.sent, now_s)
         self._react(viewer, viewer.last_sample, now_s)
 
     def forget(self, source: str) -> None:
@@ -182,6 +188,15 @@ class RateController:
         return viewer.rate, "probing" if viewer.rate < self.ceiling else "steady"
 
     def _react(self, viewer: _Viewer, sample: LinkSample, now_s: float) -> None:
+        if sample.stalled:
+            # Nothing arrives: nothing to measure either. The safe rate until frames
+            # flow again (then up from there), not a cut to what "arrived" (zero).
+            if viewer.rate > self.safe:
+                viewer.rate = self.safe
+                viewer.last_decrease_s = now_s
+                log.info("rate: %.2f Mbit/s (nothing arrives)", viewer.rate / 1e6)
+            return
+        joining = viewer.first_report_s is not None and now_s - viewer.first_report_s < JOIN_GRACE_S
         queue = sample.queue_ms
         slower = sample.stretch is None or sample.stretch > STRETCH_OVERUSE
         growing = queue is not None and queue > QUEUE_OVERUSE_MS and sample.queue_rising and slower
@@ -189,13 +204,21 @@ class RateController:
         viewer.overuse_reports = viewer.overuse_reports + 1 if growing or high else 0
         congested = (
             viewer.overuse_reports >= OVERUSE_REPORTS
-            or sample.loss > LOSS_OVERUSE
-            or sample.skipped > 0
+            # Joining, the relay may replay a long cached group (under intra refresh up
+            # to SAFETY_IDR_S of video) faster than the viewer's max latency allows and
+            # skip it, losing its frames: that is the join, not the link.
+            or (sample.loss > LOSS_OVERUSE and not joining)
+            or (sample.skipped > 0 and not joining)
         )
         if not congested or now_s - viewer.last_decrease_s < DECREASE_HOLD_S:
             return
         delivered = sample.delivered_bps
+        if delivered is None:
+            delivered = sample.reported_bps
         cut = viewer.rate * DECREASE
+        if sample.loss > LOSS_OVERUSE:
+            # GCC's loss rule: the more is lost, the deeper (86 % lost: 0.57x).
+            cut = min(cut, viewer.rate * (1 - 0.5 * sample.loss))
         if delivered is not None:
             cut = min(cut, delivered * DECREASE)
         # Where the link gave out: what arrived, not what we aimed at (above it).
