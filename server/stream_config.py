@@ -23,7 +23,12 @@ class StreamConfig(BaseModel):
         le=200_000,
         description="video bitrate (default: 6 Mbit/s at 720p60, scaled)",
     )
-    gop_seconds: float = Field(default=2.0, gt=0, le=60, description="periodic keyframe interval")
+    gop_seconds: float = Field(
+        default=2.0,
+        gt=0,
+        le=60,
+        description="periodic keyframe interval (with intra_refresh: the refresh sweep period)",
+    )
     audio: bool = Field(default=True, description="publish the game's sound (Opus track `audio`)")
     rate_control: bool = Field(
         default=True,
