@@ -10,9 +10,10 @@ being sent, and the per-chunk delivery delay (send -> last byte arrived) as
 median and p95. A chunk that never arrived counts as late. Cases run interleaved
 (link by link, controllers in turn) and are compared as ratios to reno.
 
-The link: a FIFO bottleneck at the given rate with a queue of ``--queue-ms``,
-random loss before the queue, half the RTT of propagation each way, both
-directions shaped alike. The link ``0/0/0`` is plain loopback (no forwarder), to
+The link: server/net's emulator (in the same loop), a FIFO bottleneck at the
+given rate with a queue of ``--queue-ms``, random loss before the queue, half the
+RTT of propagation each way, both directions shaped alike. The link ``0/0/0`` is
+plain loopback (no emulator), to
 check that the controller costs nothing where the network is not the limit.
 Sender and receiver share one clock (one process).
 """
@@ -21,13 +22,11 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import random
 import struct
 import sys
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, cast
+from typing import Any
 
 from aioquic.asyncio.client import connect
 from aioquic.asyncio.protocol import QuicConnectionProtocol
@@ -36,6 +35,7 @@ from aioquic.quic.configuration import QuicConfiguration
 from aioquic.quic.events import HandshakeCompleted, QuicEvent, StreamDataReceived
 
 from server.bench.report import BenchReport, summarize_ms
+from server.net import LinkProfile, NetworkEmulator, Schedule
 from server.quic.certs import generate_cert
 from server.quic.congestion_register import algorithm_names
 
@@ -51,6 +51,16 @@ class LinkSpec:
     loss: float
     queue_ms: float = 100.0
 
+    def profile(self) -> LinkProfile:
+        """Both directions alike: the rate, loss and queue each way, half the RTT."""
+        return LinkProfile.both_ways(
+            rate_bps=self.rate_mbit * 1e6,
+            up_rate_bps=self.rate_mbit * 1e6,
+            rtt_ms=self.rtt_ms,
+            loss=self.loss,
+            queue_ms=self.queue_ms,
+        )
+
     @property
     def label(self) -> str:
         if self.rate_mbit <= 0:
@@ -64,64 +74,6 @@ DEFAULT_LINKS = (
     LinkSpec(20.0, 15.0, 0.0),
     LinkSpec(0.0, 0.0, 0.0),  # plain loopback: no forwarder
 )
-
-
-class _Direction:
-    """One direction of the link: loss, then a FIFO queue drained at the link rate,
-    then the propagation delay."""
-
-    def __init__(self, spec: LinkSpec, rng: random.Random, send: Callable[[bytes], None]):
-        self._rate = spec.rate_mbit * 1e6 / 8
-        self._delay = spec.rtt_ms / 2000
-        self._queue_bytes = self._rate * spec.queue_ms / 1000
-        self._loss = spec.loss
-        self._rng = rng
-        self._send = send
-        self._free_at = 0.0
-        self.dropped = 0
-
-    def push(self, data: bytes) -> None:
-        loop = asyncio.get_running_loop()
-        now = loop.time()
-        if self._rng.random() < self._loss:
-            self.dropped += 1
-            return
-        start = max(now, self._free_at)
-        if (start - now) * self._rate + len(data) > self._queue_bytes:
-            self.dropped += 1  # tail drop
-            return
-        self._free_at = start + len(data) / self._rate
-        loop.call_at(self._free_at + self._delay, self._send, data)
-
-
-class LossyLink(asyncio.DatagramProtocol):
-    """A UDP forwarder on loopback between one client and `upstream`."""
-
-    def __init__(self, spec: LinkSpec, upstream: tuple[str, int], seed: int) -> None:
-        self.upstream = upstream
-        self.client: tuple[str, int] | None = None
-        self.transport: asyncio.DatagramTransport | None = None
-        rng = random.Random(seed)
-        self.to_server = _Direction(spec, rng, self._to_server)
-        self.to_client = _Direction(spec, rng, self._to_client)
-
-    def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        self.transport = cast(asyncio.DatagramTransport, transport)
-
-    def datagram_received(self, data: bytes, addr: tuple[str, int]) -> None:
-        if addr == self.upstream:
-            self.to_client.push(data)
-        else:
-            self.client = addr
-            self.to_server.push(data)
-
-    def _to_server(self, data: bytes) -> None:
-        if self.transport is not None and not self.transport.is_closing():
-            self.transport.sendto(data, self.upstream)
-
-    def _to_client(self, data: bytes) -> None:
-        if self.transport is not None and self.client and not self.transport.is_closing():
-            self.transport.sendto(data, self.client)
 
 
 @dataclass
@@ -231,13 +183,17 @@ async def measure(
     assert server._transport is not None
     server_port = server._transport.get_extra_info("sockname")[1]
     loop = asyncio.get_running_loop()
-    link_transport: asyncio.DatagramTransport | None = None
+    emulator: NetworkEmulator | None = None
     port = server_port
     if link.rate_mbit > 0:
-        link_transport, _ = await loop.create_datagram_endpoint(
-            lambda: LossyLink(link, ("127.0.0.1", server_port), seed), local_addr=("127.0.0.1", 0)
+        emulator = NetworkEmulator(
+            listen=("127.0.0.1", 0),
+            upstream=("127.0.0.1", server_port),
+            schedule=Schedule.constant(link.profile()),
+            seed=seed,
         )
-        port = link_transport.get_extra_info("sockname")[1]
+        await emulator.start()
+        port = emulator.port
     client_config = QuicConfiguration(
         alpn_protocols=[ALPN],
         is_client=True,
@@ -260,8 +216,8 @@ async def measure(
             while len(transfer.arrived) < len(transfer.sent) and loop.time() < deadline:
                 await asyncio.sleep(0.02)
     finally:
-        if link_transport is not None:
-            link_transport.close()
+        if emulator is not None:
+            await emulator.stop()
         server.close()
     return transfer
 

@@ -23,6 +23,8 @@ BENCHMARKS: dict[str, str] = {
     "capture ms, input-to-photon, received PSNR, a screenshot",
     "network": "the player over emulated links (lan, cable, wifi, lte, drop, blackout): "
     "delivered fps, freezes, glass-to-glass, bitrate against capacity, received PSNR",
+    "congestion": "QUIC congestion controllers (reno, cubic, upcast-media) over lossy links: "
+    "goodput and chunks on time for a video-like sender",
 }
 
 
