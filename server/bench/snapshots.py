@@ -23,9 +23,16 @@ Thumb = npt.NDArray[np.float32]
 def thumbnail(rgb: npt.NDArray[Any]) -> Thumb:
     """(H, W, 3) -> (H/4, W/4, 3) float32 box average: what the tap keeps and the
     page's snapshot is compared as (encoder noise averages out; a wrong frame does not)."""
+    import cv2  # the game extra's; the benches that tap frames need it anyway
+
     h, w = rgb.shape[0] // THUMB * THUMB, rgb.shape[1] // THUMB * THUMB
-    a = np.asarray(rgb[:h, :w, :3], dtype=np.float32)
-    thumb: Thumb = a.reshape(h // THUMB, THUMB, w // THUMB, THUMB, 3).mean(axis=(1, 3))
+    a = np.ascontiguousarray(rgb[:h, :w, :3], dtype=np.float32)
+    # OpenCV's area resize at an integer factor is exactly the box mean, in 1.7 ms
+    # at 1280x720 where numpy's reshape-mean took 20: the tap runs on the encoding
+    # thread for every frame, and the 20 ms had cost the network bench a third of
+    # its frame rate.
+    small = cv2.resize(a, (w // THUMB, h // THUMB), interpolation=cv2.INTER_AREA)
+    thumb: Thumb = np.asarray(small, dtype=np.float32)
     return thumb
 
 
