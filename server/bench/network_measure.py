@@ -61,8 +61,10 @@ class NetworkRun:
 
 
 def _encoder_bitrate(live: LiveStack) -> int | None:
-    encoder = getattr(live.session, "encoder", None)
-    value = getattr(encoder, "bitrate", None)
+    """The bitrate the session's rate control chose (bits per second of stream: while
+    it thins the frame rate the encoder is told twice this per configured frame rate)."""
+    state = getattr(live.session, "stream_state", None)
+    value = state.get("bitrate") if isinstance(state, dict) else None
     return int(value) if isinstance(value, int | float) else None
 
 

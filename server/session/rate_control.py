@@ -45,11 +45,12 @@ from server.session.link_estimate import LinkEstimate, LinkSample, SendLog
 log = logging.getLogger(__name__)
 
 QUEUE_OVERUSE_MS = 25.0
-QUEUE_HIGH_MS = 120.0
+QUEUE_HIGH_MS = 80.0
 OVERUSE_REPORTS = 2
 STRETCH_OVERUSE = 1.03
 LOSS_OVERUSE = 0.10  # video frames lost since the last report (not packets: QUIC repairs those)
 DECREASE = 0.85
+MAX_CUT = 0.5  # one decrease keeps at least half the rate
 DECREASE_HOLD_S = 0.5
 INCREASE_HOLD_S = 1.0
 INCREASE_PER_S = 0.2  # multiplicative, far from the last congestion
@@ -70,6 +71,7 @@ class _Viewer:
     first_seen_s: float = 0.0
     last_report_s: float | None = None
     first_report_s: float | None = None
+    join_skip_s: float | None = None  # when a skip while joining was reported
     rate: float = 0.0  # this viewer's allowed rate
     last_decrease_s: float = -1e9
     congestion_rate: float | None = None  # the rate at the last decrease
@@ -197,6 +199,10 @@ class RateController:
                 log.info("rate: %.2f Mbit/s (nothing arrives)", viewer.rate / 1e6)
             return
         joining = viewer.first_report_s is not None and now_s - viewer.first_report_s < JOIN_GRACE_S
+        if joining and sample.skipped > 0:
+            viewer.join_skip_s = now_s
+        # The frames of a group skipped while joining show as lost up to a report later.
+        join_loss = viewer.join_skip_s is not None and now_s - viewer.join_skip_s < 1.0
         queue = sample.queue_ms
         slower = sample.stretch is None or sample.stretch > STRETCH_OVERUSE
         growing = queue is not None and queue > QUEUE_OVERUSE_MS and sample.queue_rising and slower
@@ -206,8 +212,9 @@ class RateController:
             viewer.overuse_reports >= OVERUSE_REPORTS
             # Joining, the relay may replay a long cached group (under intra refresh up
             # to SAFETY_IDR_S of video) faster than the viewer's max latency allows and
-            # skip it, losing its frames: that is the join, not the link.
-            or (sample.loss > LOSS_OVERUSE and not joining)
+            # skip it, losing its frames (counted up to a report later): that is the
+            # join, not the link.
+            or (sample.loss > LOSS_OVERUSE and not join_loss)
             or (sample.skipped > 0 and not joining)
         )
         if not congested or now_s - viewer.last_decrease_s < DECREASE_HOLD_S:
@@ -221,8 +228,15 @@ class RateController:
             cut = min(cut, viewer.rate * (1 - 0.5 * sample.loss))
         if delivered is not None:
             cut = min(cut, delivered * DECREASE)
-        # Where the link gave out: what arrived, not what we aimed at (above it).
-        viewer.congestion_rate = delivered if delivered is not None else viewer.rate
+        # At most halve per step (GCC's loss rule at 100 % loss): a report that saw
+        # nothing arrive in its quarter second (a reset group) is not a link of zero.
+        cut = max(cut, viewer.rate * MAX_CUT)
+        # Where the link gave out, for the gentle climb back near it: what arrived,
+        # when a growing queue timed it. After a loss, a skip or a cut from what the
+        # byte counter says, what arrived is a fraction of the link (frames lost whole,
+        # groups reset): no such point, the climb back is the quick one.
+        by_delay = (growing or high) and sample.delivered_bps is not None
+        viewer.congestion_rate = sample.delivered_bps if by_delay else None
         viewer.rate = max(self.floor, cut)
         viewer.last_decrease_s = now_s
         viewer.decreases += 1
