@@ -230,7 +230,9 @@ def test_thread_wrapper_for_blocking_callers() -> None:
             data, source = echo.recvfrom(100)
             echo.sendto(data, source)
             assert client.recv(100) == b"ping"
-            assert time.monotonic() - start >= 0.0199
+            # The emulator's timer may release up to 0.5 ms early (it aims early because
+            # asyncio rounds its waits up to whole milliseconds).
+            assert time.monotonic() - start >= 0.019
             assert net.stats()["down"]["delivered"] == 1
 
 
@@ -319,5 +321,7 @@ def test_a_viewer_watches_the_relay_through_the_emulator(tmp_path: Path) -> None
     # 15 ms one way + 3 kB at 20 Mbit/s (1.2 ms) more than the direct viewer; 1-2 ms
     # more on an idle machine, up to ~10 when relay, peers and emulator share this
     # process's one loop on a machine at load 10 (the emulator's timer waits its turn).
-    assert 15.5 <= statistics.median(extra) <= 28.0, extra
+    # Down to 1 ms under 15: the timer may release 0.5 ms early, and the direct
+    # viewer's own reads wait for the same loop (a fresh-clone CI run measured 15.3).
+    assert 14.0 <= statistics.median(extra) <= 28.0, extra
     assert stats["clients"] == 1 and stats["down"]["lost"] == 0
