@@ -61,15 +61,21 @@ class ShownFrames:
     freeze_ms: float = 0.0
     longest_ms: float = 0.0
     _last_ms: float | None = None
+    _origin_ms: float | None = None  # page time at the window's start (its last draw before)
     gaps_ms: list[float] = field(default_factory=list)
+    # When each freeze began, seconds into the window (a step in a profile's schedule
+    # and the freezes it caused line up).
+    starts_s: list[float] = field(default_factory=list)
 
     def start(self, draws: list[float]) -> None:
         """Draws before the window: only the last one matters (the first gap's start)."""
         if draws:
-            self._last_ms = draws[-1]
+            self._last_ms = self._origin_ms = draws[-1]
 
     def add(self, draws: list[float]) -> None:
         for t in draws:
+            if self._origin_ms is None:
+                self._origin_ms = t
             if self._last_ms is not None:
                 self._gap(t - self._last_ms)
             self._last_ms = t
@@ -89,6 +95,8 @@ class ShownFrames:
             self.freeze_ms += gap_ms
             self.longest_ms = max(self.longest_ms, gap_ms)
             self.gaps_ms.append(round(gap_ms, 1))
+            if self._last_ms is not None and self._origin_ms is not None:
+                self.starts_s.append(round((self._last_ms - self._origin_ms) / 1000, 2))
 
     def summary(self) -> dict[str, Any]:
         return {
@@ -96,6 +104,7 @@ class ShownFrames:
             "total_ms": round(self.freeze_ms, 1),
             "longest_ms": round(self.longest_ms, 1),
             "gaps_ms": self.gaps_ms,
+            "starts_s": self.starts_s,
         }
 
 
