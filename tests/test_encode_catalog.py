@@ -90,9 +90,15 @@ def run_with_hang(tmp_path: Path, script: str, *args: Path) -> Any:
     with the client's esbuild, run it on ``args`` and return the JSON it prints."""
     src = tmp_path / "check.mjs"
     src.write_text(script.replace("HANG", str(CLIENT_MODULES / "@moq" / "hang")))
+    return run_in_node(tmp_path, src, *args)
+
+
+def run_in_node(tmp_path: Path, entry: Path, *args: Path | str) -> Any:
+    """Bundle ``entry`` (JS or TS, importing the client's packages) for node with the
+    client's esbuild, run it on ``args`` and return the JSON it prints."""
     bundle = tmp_path / "bundle.mjs"
     subprocess.run(
-        [str(CLIENT_MODULES / ".bin" / "esbuild"), str(src), "--bundle", "--platform=node",
+        [str(CLIENT_MODULES / ".bin" / "esbuild"), str(entry), "--bundle", "--platform=node",
          "--format=esm", f"--outfile={bundle}", "--log-level=error"],
         check=True, env={**os.environ, "NODE_PATH": str(CLIENT_MODULES)},
     )  # fmt: skip
