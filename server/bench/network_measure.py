@@ -60,17 +60,13 @@ class NetworkRun:
     congestion_control: str | None = None  # the relay's QUIC sender; None: its default
 
 
-def _encoder_bitrate(live: LiveStack) -> int | None:
-    """The bitrate the session's rate control chose (bits per second of stream: while
-    it thins the frame rate the encoder is told twice this per configured frame rate)."""
+def _stream_state(live: LiveStack, key: str) -> int | None:
+    """A figure of the session's rate control from its stream state (what every timing
+    record carries): ``bitrate`` is the rate chosen (bits per second of stream; while it
+    thins the frame rate the encoder is told twice this), ``fps_divisor`` 1 or 2."""
     state = getattr(live.session, "stream_state", None)
-    value = state.get("bitrate") if isinstance(state, dict) else None
+    value = state.get(key) if isinstance(state, dict) else None
     return int(value) if isinstance(value, int | float) else None
-
-
-def _frame_divisor(live: LiveStack) -> int | None:
-    value = getattr(getattr(live.session, "rate", None), "frame_divisor", None)
-    return value if isinstance(value, int) else None
 
 
 def _stats(page: Any) -> dict[str, Any]:
@@ -160,11 +156,11 @@ def measure(run: NetworkRun, browser: Any) -> dict[str, Any]:
                 link = net.stats()
                 series.sample(
                     now,
-                    target_bps=_encoder_bitrate(live),
+                    target_bps=_stream_state(live, "bitrate"),
                     step=int(link["step"]),
                     link_bytes=int(link["down"]["bytes_delivered"]),
                     page_bytes=_bytes(last),
-                    frame_divisor=_frame_divisor(live),
+                    frame_divisor=_stream_state(live, "fps_divisor"),
                 )
                 if now >= t_end:
                     break
