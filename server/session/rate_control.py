@@ -148,12 +148,9 @@ class RateController:
             rate, reason = self.ceiling, "configured"
         delivered, queue = self._worst_sample()
         self.state = RateState(int(rate), reason, len(self._players), delivered, queue)
-        if abs(rate - self._told) <= CHANGE_STEP * self._told and rate not in (
-            self.floor,
-            self.ceiling,
-        ):
-            return None
-        if int(rate) == int(self._told):
+        # Small moves wait until they add up, except onto the floor or the ceiling.
+        small = abs(rate - self._told) <= CHANGE_STEP * self._told
+        if int(rate) == int(self._told) or (small and rate not in (self.floor, self.ceiling)):
             return None
         self._told = rate
         return int(rate)
