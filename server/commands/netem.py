@@ -47,9 +47,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.epilog = EPILOG
     parser.add_argument(
         "--listen",
-        default="localhost:4444",
+        default="localhost:4450",
         metavar="[HOST:]PORT",
-        help="where viewers connect (localhost = 127.0.0.1 and ::1; [::1]:PORT for one)",
+        # Not 4444-4446: upcast up serves the session's, game's and worker's metrics
+        # there, and the TCP pass-through would collide with the first.
+        help="where viewers connect (localhost = 127.0.0.1 and ::1; [::1]:PORT for one;"
+        " default port 4450, clear of upcast up's 4443-4446)",
     )
     parser.add_argument(
         "--to",
