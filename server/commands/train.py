@@ -112,6 +112,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--threads", type=_positive_int, default=2, help="torch CPU threads")
     parser.add_argument(
+        "--real-content",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="also train on the training pictures of DIR (`upcast eval content --fetch --dir "
+        "DIR`): photographs and game screenshots as pans, zooms and rotations with exact "
+        "motion; their held-out pictures are never used",
+    )
+    parser.add_argument(
+        "--real-share",
+        type=_share,
+        default=0.5,
+        help="with --real-content: share of the steps whose batch comes from the pictures "
+        "(three quarters photographs, one quarter screenshots); the rest from the game",
+    )
+    parser.add_argument(
         "--scenes", default="all", help="comma-separated scenes to render (default all)"
     )
 
@@ -124,6 +140,8 @@ def run(args: argparse.Namespace) -> int:
     from server.game.render.scenes import parse_scene_list
     from server.train.dataset import DatasetSpec, load_or_generate
     from server.train.loop import TrainConfig, train
+    from server.train.mix import build_mix
+    from server.train.photo_dataset import PhotoSpec
     from upscalers.neural.features import feature_channels
     from upscalers.neural.flops import conv_flops
     from upscalers.neural.network import (
@@ -159,7 +177,19 @@ def run(args: argparse.Namespace) -> int:
     started = time.monotonic()
     print(f"[data] {spec.sequences} sequences at {render} -> 2x, cache {args.data_dir}",
           file=sys.stderr)  # fmt: skip
-    data = load_or_generate(spec, args.data_dir)
+    game_data = load_or_generate(spec, args.data_dir)
+    try:
+        data = build_mix(
+            game_data,
+            args.real_content,
+            args.real_share,
+            PhotoSpec(
+                frames=spec.frames, truth_frames=spec.truth_frames, scale=scale, seed=args.seed
+            ),
+            args.data_dir,
+        )
+    except (FileNotFoundError, ValueError) as e:
+        raise SystemExit(f"--real-content: {e}") from None
     data_s = time.monotonic() - started
 
     model = build_model(args.model, scale)
@@ -193,6 +223,8 @@ def run(args: argparse.Namespace) -> int:
         "lr": cfg.lr,
         "cache_aware": cfg.cached_share,
         "final_l1": result.final_loss,
+        "final_l1_by_part": json.dumps(result.final_loss_by_part),
+        "real_content": None if args.real_content is None else args.real_share,
         "train_seconds": round(result.seconds, 1),
         "data_seconds": round(data_s, 1),
         "dataset": json.dumps(

@@ -25,9 +25,10 @@ import math
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
+import numpy.typing as npt
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -63,6 +64,8 @@ class TrainResult:
     seconds: float
     final_loss: float
     stopped_early: bool
+    # Mean L1 of the last steps drawn from each dataset of the mix, by label.
+    final_loss_by_part: dict[str, float] = field(default_factory=dict)
 
 
 def _batch(
@@ -136,8 +139,31 @@ def _cache_mode(cache: LayerCache | None, reuse: bool) -> Iterator[None]:
         yield
 
 
+@dataclass(frozen=True)
+class DataMix:
+    """Datasets trained on together: each step's batch comes from one of them, drawn
+    with the given weights (their own generator, so one dataset alone draws the
+    same batches as before mixes existed)."""
+
+    parts: tuple[tuple[str, Dataset, float], ...]  # (label, data, weight)
+
+    def __post_init__(self) -> None:
+        if not self.parts:
+            raise ValueError("a data mix needs at least one dataset")
+        if any(weight <= 0.0 for _, _, weight in self.parts):
+            raise ValueError(f"mix weights must be > 0, got {[w for _, _, w in self.parts]}")
+
+    def probabilities(self) -> npt.NDArray[np.float64]:
+        weights = np.array([weight for _, _, weight in self.parts], np.float64)
+        return np.asarray(weights / weights.sum(), dtype=np.float64)
+
+
 def train(
-    model: nn.Module, data: Dataset, cfg: TrainConfig, scale: int, progress: bool = True
+    model: nn.Module,
+    data: Dataset | DataMix,
+    cfg: TrainConfig,
+    scale: int,
+    progress: bool = True,
 ) -> TrainResult:
     if not 0.0 <= cfg.cached_share <= 1.0:
         raise ValueError(f"cached_share must be in [0, 1], got {cfg.cached_share}")
@@ -153,7 +179,7 @@ def train(
 
 def _train(
     model: nn.Module,
-    data: Dataset,
+    data: Dataset | DataMix,
     cfg: TrainConfig,
     scale: int,
     progress: bool,
@@ -162,10 +188,14 @@ def _train(
     rng = np.random.default_rng(cfg.seed)
     # Its own generator: runs without the cache draw the same batches as before it.
     cache_rng = np.random.default_rng([cfg.seed, 1])
+    mix = data if isinstance(data, DataMix) else DataMix((("data", data, 1.0),))
+    mix_rng = np.random.default_rng([cfg.seed, 2])
+    mix_p = mix.probabilities()
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     model.train()
     started = time.monotonic()
     recent: list[float] = []
+    by_part: dict[str, list[float]] = {}
     step = 0
     stopped_early = False
     for step in range(cfg.steps):
@@ -174,7 +204,8 @@ def _train(
             break
         for group in opt.param_groups:
             group["lr"] = _lr_at(step, cfg)
-        frames, truths = _batch(data, rng, cfg, scale)
+        part = 0 if len(mix.parts) == 1 else int(mix_rng.choice(len(mix.parts), p=mix_p))
+        frames, truths = _batch(mix.parts[part][1], rng, cfg, scale)
         history: History | None = None
         opt.zero_grad(set_to_none=True)
         losses = []
@@ -196,10 +227,17 @@ def _train(
         opt.step()
         recent.append(float(loss.detach()))
         recent = recent[-50:]
+        label = mix.parts[part][0]
+        by_part[label] = [*by_part.get(label, []), recent[-1]][-50:]
         if progress and (step % cfg.log_every == 0 or step == cfg.steps - 1):
             elapsed, eta = elapsed_and_left(step + 1, cfg.steps, started)
+            parts = (
+                ""
+                if len(mix.parts) == 1
+                else " (" + ", ".join(f"{k} {np.mean(v):.4f}" for k, v in by_part.items()) + ")"
+            )
             report_progress(
-                f"[train] step {step + 1}/{cfg.steps} loss {np.mean(recent):.4f} "
+                f"[train] step {step + 1}/{cfg.steps} loss {np.mean(recent):.4f}{parts} "
                 f"lr {_lr_at(step, cfg):.2e} {elapsed:.0f} s, eta {eta:.0f} s"
             )
     else:
@@ -210,4 +248,5 @@ def _train(
         seconds=time.monotonic() - started,
         final_loss=float(np.mean(recent)) if recent else float("nan"),
         stopped_early=stopped_early,
+        final_loss_by_part={k: float(np.mean(v)) for k, v in by_part.items()},
     )
