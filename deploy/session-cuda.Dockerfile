@@ -21,6 +21,10 @@ COPY upscalers/ upscalers/
 RUN pip install ".[game]"
 COPY deploy/healthcheck.py /usr/local/bin/upcast-healthcheck
 RUN chmod 0755 /usr/local/bin/upcast-healthcheck && useradd --system --uid 10001 upcast
+# numba must be able to write its cache (session.Dockerfile found it refuses to import
+# the CPU kernels otherwise); here they compile on first use, into this folder.
+ENV NUMBA_CACHE_DIR=/var/cache/numba
+RUN mkdir -p /var/cache/numba && chown upcast /var/cache/numba
 USER upcast
 EXPOSE 4444/tcp
 HEALTHCHECK --interval=5s --timeout=4s --start-period=60s --retries=10 \

@@ -1,24 +1,46 @@
-# syntax=docker/dockerfile:1
 # The session image, CPU: `upcast serve` runs N game sessions (game + upscaler worker +
 # encoder each, rings in /dev/shm) and publishes them to an external relay.
-FROM python:3.11-slim-bookworm
-ENV PYTHONUNBUFFERED=1 PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1
-WORKDIR /app
+#
+# Online by default; offline with the build arguments BASE_IMAGE and
+# PYTHON_SOURCE=wheelhouse, as deploy/relay.Dockerfile explains (no `# syntax=` line
+# for the same reason).
+ARG BASE_IMAGE=python:3.11-slim-bookworm
+FROM ${BASE_IMAGE}
+ARG PYTHON_SOURCE=pypi
 # CPU torch (pyproject's extra `game` pins torch==2.13.0; from PyPI that pin pulls
-# CUDA wheels).
+# CUDA wheels). Offline, the wheelhouse holds the CPU wheel (deploy/smoke.sh checks).
 ARG TORCH_INDEX_URL=https://download.pytorch.org/whl/cpu
-RUN pip install --index-url "${TORCH_INDEX_URL}" torch==2.13.0
+ENV PYTHONUNBUFFERED=1 PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1 \
+    PATH=/opt/venv/bin:$PATH
+# A venv, on either base: Debian's own python3 refuses system-wide pip installs.
+RUN python3 -m venv /opt/venv
+WORKDIR /app
+# The wheelhouse is bind-mounted, not copied: no wheel stays in a layer.
+RUN --mount=type=bind,source=deploy/wheelhouse,target=/wheelhouse \
+    if [ "$PYTHON_SOURCE" = wheelhouse ]; then \
+        export PIP_NO_INDEX=1 PIP_FIND_LINKS=/wheelhouse; \
+    else \
+        export PIP_INDEX_URL="$TORCH_INDEX_URL"; \
+    fi && \
+    pip install torch==2.13.0
 COPY pyproject.toml README.md ./
 COPY server/ server/
 COPY upscalers/ upscalers/
 # With the extra `game` (torch, numba, ...: the game and the upscaler worker). PyAV's
 # wheel bundles FFmpeg with libx264: no system codec packages needed.
-RUN pip install ".[game]"
-# Compile the numba CPU kernels into their cache now (as root: site-packages is
-# read-only for the upcast user), not on the first frame of a stream.
-RUN python -m upscalers.warm_kernels
+RUN --mount=type=bind,source=deploy/wheelhouse,target=/wheelhouse \
+    if [ "$PYTHON_SOURCE" = wheelhouse ]; then \
+        export PIP_NO_INDEX=1 PIP_FIND_LINKS=/wheelhouse; \
+    fi && \
+    pip install ".[game]"
 COPY deploy/healthcheck.py /usr/local/bin/upcast-healthcheck
 RUN chmod 0755 /usr/local/bin/upcast-healthcheck && useradd --system --uid 10001 upcast
+# numba's cache must be writable by the user who loads it: numba refuses to cache at
+# all (an import error, at the first @njit(cache=True)) where it cannot write, and
+# site-packages is root's. Its own folder, given to the upcast user.
+ENV NUMBA_CACHE_DIR=/var/cache/numba
+# Compile the numba CPU kernels into that cache now, not on the first frame of a stream.
+RUN python -m upscalers.warm_kernels && chown -R upcast /var/cache/numba
 USER upcast
 # Status/metrics HTTP (GET /sessions, /metrics, /healthz).
 EXPOSE 4444/tcp
