@@ -1,11 +1,16 @@
-"""The docker compose stack, checked without a Docker engine (there is none in CI).
+"""The docker compose stack's files, checked without a Docker engine.
 
-What is checked and how is listed in deploy/README.md: the compose files parse and
+deploy/smoke.sh builds and runs the stack for real (.ci/run runs it after the test
+suite); these checks run everywhere, fast. What they cover is listed in
+deploy/README.md: the compose files parse and
 have the shape used, every `upcast ...` command in them and in the Dockerfiles is
 parsed by the real CLI parser, every COPY source exists, the health-check URLs are
 routes the processes serve, ports agree between flags, mappings, health checks and
 the Prometheus targets, the moq-relay cluster TOMLs parse and share the key, and
-every metric the Grafana dashboard queries is exported by a process.
+every metric the Grafana dashboard queries is exported by a process; the offline
+build arguments (base image, wheelhouse, prebuilt web client) are wired the same way
+in every Dockerfile and override, and the smoke test's host-network override runs
+the base file's commands on loopback.
 """
 
 from __future__ import annotations
@@ -33,8 +38,12 @@ ROOT = Path(__file__).resolve().parents[1]
 COMPOSE = ROOT / "docker-compose.yml"
 CUDA_OVERRIDE = ROOT / "deploy" / "docker-compose.cuda.yml"
 CLUSTER_OVERRIDE = ROOT / "deploy" / "cluster" / "docker-compose.cluster.yml"
+OFFLINE_OVERRIDE = ROOT / "deploy" / "docker-compose.offline.yml"
+HOSTNET_OVERRIDE = ROOT / "deploy" / "docker-compose.hostnet.yml"
+OVERRIDES = (CUDA_OVERRIDE, CLUSTER_OVERRIDE, OFFLINE_OVERRIDE, HOSTNET_OVERRIDE)
 DOCKERFILES = sorted((ROOT / "deploy").rglob("*.Dockerfile"))
 KEY_PATH = "/secrets/auth.key"
+WEB_DIST = "client_web/dist"  # where ./dev (client_web/build.mjs) writes the web client
 
 # Every upcast subcommand the deployment runs.
 EXPECTED_COMMANDS = {"relay", "serve", "token"}
@@ -46,8 +55,23 @@ DOCKERFILE_INSTRUCTIONS = {
 SHELL_SEPARATORS = {"&&", "||", ";", "|"}
 
 
+class Reset:
+    """Compose's ``!reset`` tag: the override clears the base file's value."""
+
+    def __repr__(self) -> str:
+        return "!reset"
+
+
+class ComposeLoader(yaml.SafeLoader):
+    pass
+
+
+ComposeLoader.add_constructor("!reset", lambda loader, node: Reset())
+
+
 def load_yaml(path: Path) -> dict[str, Any]:
-    data = yaml.safe_load(path.read_text())
+    # ComposeLoader is a SafeLoader with one more tag: as safe as safe_load.
+    data = yaml.load(path.read_text(), Loader=ComposeLoader)
     assert isinstance(data, dict), path
     return data
 
@@ -67,7 +91,9 @@ def merged_services(*paths: Path) -> dict[str, dict[str, Any]]:
         for name, service in services(path).items():
             base = result.setdefault(name, {})
             for key, value in service.items():
-                if isinstance(value, dict) and isinstance(base.get(key), dict):
+                if isinstance(value, Reset):
+                    base.pop(key, None)
+                elif isinstance(value, dict) and isinstance(base.get(key), dict):
                     base[key] = {**base[key], **value}
                 elif key == "volumes" and key in base:
                     by_target = {v.split(":")[1]: v for v in [*base[key], *value]}
@@ -149,7 +175,7 @@ def dockerfile_commands(path: Path) -> list[list[str]]:
 
 def compose_commands() -> list[tuple[str, list[str]]]:
     found = []
-    for path in (COMPOSE, CUDA_OVERRIDE, CLUSTER_OVERRIDE):
+    for path in (COMPOSE, *OVERRIDES):
         for name, service in services(path).items():
             for argv in upcast_argvs(service.get("command")):
                 found.append((f"{path.name}:{name}", argv))
@@ -190,7 +216,7 @@ def test_every_upcast_command_parses_with_the_real_cli(argv: list[str]) -> None:
 # -- compose shape -----------------------------------------------------------------
 
 
-@pytest.mark.parametrize("path", [COMPOSE, CUDA_OVERRIDE, CLUSTER_OVERRIDE], ids=lambda p: p.name)
+@pytest.mark.parametrize("path", [COMPOSE, *OVERRIDES], ids=lambda p: p.name)
 def test_compose_file_shape(path: Path) -> None:
     data = load_yaml(path)
     assert set(data) <= {"name", "services", "volumes", "networks", "configs", "secrets"}
@@ -311,7 +337,11 @@ def test_dockerfile_syntax_and_copied_files(path: Path) -> None:
                 assert from_stage[0] in stages, f"{path.name}: unknown stage {from_stage}"
                 continue
             for source in sources:
-                assert (ROOT / source).exists(), f"{path.name}: COPY {source}: not in the repo"
+                # The web client's build output is not in a fresh clone: ./dev builds it.
+                built = source.rstrip("/") == WEB_DIST
+                assert built or (ROOT / source).exists(), (
+                    f"{path.name}: COPY {source}: not in the repo"
+                )
                 assert not _docker_ignored(source), f"{path.name}: {source} is .dockerignored"
         elif keyword in ("CMD", "ENTRYPOINT"):
             exec_form(path, keyword, arguments)
@@ -339,14 +369,25 @@ def test_the_relay_serves_the_web_client_its_image_builds() -> None:
     assert flag(cmd, "--web-root") == web_root
 
 
-def _project_installs(path: Path) -> list[str]:
-    """What each ``pip install`` of the project itself installs: ``.`` or ``.[extra]``."""
+def _pip_installs(path: Path) -> list[tuple[str, list[str]]]:
+    """(the RUN's arguments, the words after ``pip install``) for every ``pip install``
+    in a RUN, also after ``&&`` or inside ``if ...; fi &&``."""
     found = []
     for keyword, arguments in dockerfile_instructions(path):
-        words = shlex.split(arguments) if keyword == "RUN" else []
-        if words[:2] == ["pip", "install"]:
-            found += [w for w in words[2:] if w == "." or w.startswith(".[")]
+        if keyword != "RUN":
+            continue
+        words = shlex.split(arguments.replace(";", " ; "))
+        for i in range(len(words) - 1):
+            if words[i : i + 2] == ["pip", "install"]:
+                rest = words[i + 2 :]
+                end = next((j for j, w in enumerate(rest) if w in SHELL_SEPARATORS), len(rest))
+                found.append((arguments, rest[:end]))
     return found
+
+
+def _project_installs(path: Path) -> list[str]:
+    """What each ``pip install`` of the project itself installs: ``.`` or ``.[extra]``."""
+    return [w for _, words in _pip_installs(path) for w in words if w == "." or w.startswith(".[")]
 
 
 @pytest.mark.parametrize(
@@ -359,6 +400,149 @@ def test_each_image_installs_the_extra_its_commands_need(name: str, install: str
     assert _project_installs(path) == [install]
     if install == ".":
         assert "torch" not in " ".join(a for k, a in dockerfile_instructions(path) if k == "RUN")
+
+
+# -- offline builds (build arguments) ----------------------------------------------------
+
+# The images of the default stack: what deploy/docker-compose.offline.yml builds offline.
+OFFLINE_DOCKERFILES = [ROOT / "deploy" / "relay.Dockerfile", ROOT / "deploy" / "session.Dockerfile"]
+ONLINE_BASE = "python:3.11-slim-bookworm"
+WHEELHOUSE = "deploy/wheelhouse"
+BUILD_ARG_VALUES = {"PYTHON_SOURCE": {"pypi", "wheelhouse"}, "WEB_SOURCE": {"npm", "prebuilt"}}
+
+
+def _arg_defaults(path: Path) -> dict[str, str]:
+    """ARG NAME=default of a Dockerfile (global and per stage; no default: "")."""
+    found = {}
+    for keyword, arguments in dockerfile_instructions(path):
+        if keyword == "ARG":
+            name, _, default = arguments.partition("=")
+            found[name] = default
+    return found
+
+
+def _offline_args() -> dict[str, dict[str, str]]:
+    return {
+        name: service["build"]["args"]
+        for name, service in services(OFFLINE_OVERRIDE).items()
+        if "build" in service
+    }
+
+
+@pytest.mark.parametrize("path", OFFLINE_DOCKERFILES, ids=lambda p: p.name)
+def test_python_stages_take_the_base_image_argument(path: Path) -> None:
+    # A `# syntax=` line makes BuildKit pull its frontend image: offline, the build fails.
+    assert not path.read_text().startswith("# syntax"), path.name
+    instructions = dockerfile_instructions(path)
+    assert instructions[0] == ("ARG", f"BASE_IMAGE={ONLINE_BASE}")
+    froms = [a.split()[0] for k, a in instructions if k == "FROM"]
+    # Every stage is the base, the Node image (online web build) or a stage chosen
+    # by WEB_SOURCE; the final (runtime) stage is always the base.
+    assert froms[-1] == "${BASE_IMAGE}"
+    assert set(froms) <= {"${BASE_IMAGE}", "${NODE_IMAGE}", "web-${WEB_SOURCE}"}, froms
+    assert "python:" not in " ".join(froms)
+
+
+@pytest.mark.parametrize("path", OFFLINE_DOCKERFILES, ids=lambda p: p.name)
+def test_every_pip_install_can_take_the_wheelhouse(path: Path) -> None:
+    assert _arg_defaults(path)["PYTHON_SOURCE"] == "pypi"
+    installs = _pip_installs(path)
+    assert installs
+    for run, _words in installs:
+        # Bind-mounted (no wheel in a layer) from the folder the smoke test fills, and
+        # pip told to use only it when PYTHON_SOURCE=wheelhouse.
+        assert run.startswith(f"--mount=type=bind,source={WHEELHOUSE},target=/wheelhouse "), run
+        offline = 'if [ "$PYTHON_SOURCE" = wheelhouse ]; then'
+        assert f"{offline} export PIP_NO_INDEX=1 PIP_FIND_LINKS=/wheelhouse;" in " ".join(
+            run.split()
+        ), run
+    # The folder is in the build context (a bind mount of a missing source fails the
+    # build, online too) while its wheels stay out of git.
+    assert (ROOT / WHEELHOUSE).is_dir() and not _docker_ignored(WHEELHOUSE)
+    gitignore = (ROOT / ".gitignore").read_text().splitlines()
+    assert f"/{WHEELHOUSE}/*" in gitignore and f"!/{WHEELHOUSE}/README.md" in gitignore
+
+
+def test_the_relay_web_stage_is_built_or_taken_prebuilt() -> None:
+    path = ROOT / "deploy" / "relay.Dockerfile"
+    assert _arg_defaults(path)["WEB_SOURCE"] == "npm"
+    instructions = dockerfile_instructions(path)
+    stages = {a.split()[2]: a.split()[0] for k, a in instructions if k == "FROM" and " AS " in a}
+    assert stages["web"] == "web-${WEB_SOURCE}"
+    for value in BUILD_ARG_VALUES["WEB_SOURCE"]:
+        assert f"web-{value}" in stages, value
+    # prebuilt: the host's ./dev build (build.mjs writes WEB_ROOT), where npm puts it.
+    from server.ops.browser_paths import WEB_ROOT
+
+    assert WEB_ROOT == ROOT / WEB_DIST
+    assert f"{WEB_DIST}/ /src/client_web/dist/" in [a for k, a in instructions if k == "COPY"]
+    assert not _docker_ignored(WEB_DIST)
+
+
+def test_the_offline_override_sets_every_build_argument() -> None:
+    args = _offline_args()
+    merged = merged_services(COMPOSE, OFFLINE_OVERRIDE)
+    # Every image the default stack builds; the optional `web` (profile static-web)
+    # serves from nginx's upstream image and has no offline build.
+    built = {name for name, s in merged.items() if "build" in s and not s.get("profiles")}
+    assert set(args) == built
+    base_default = re.search(r'tag="\$\{1:-([^}]+)\}"', (ROOT / "deploy/base-image.sh").read_text())
+    assert base_default is not None
+    for name, service_args in args.items():
+        dockerfile = ROOT / merged[name]["build"]["dockerfile"]
+        declared = _arg_defaults(dockerfile)
+        assert set(service_args) <= set(declared), (name, set(service_args) - set(declared))
+        assert service_args["BASE_IMAGE"] == f"${{UPCAST_BASE_IMAGE:-{base_default[1]}}}"
+        assert service_args["PYTHON_SOURCE"] == "wheelhouse"
+        for arg, values in BUILD_ARG_VALUES.items():
+            if arg in service_args:
+                assert service_args[arg] in values, (name, arg)
+
+
+# -- the smoke test's stack ---------------------------------------------------------------
+
+
+def test_the_host_network_override_runs_the_base_commands_on_loopback() -> None:
+    base = services(COMPOSE)
+    merged = merged_services(COMPOSE, HOSTNET_OVERRIDE)
+    assert {n for n, s in services(HOSTNET_OVERRIDE).items()} == {"keys", "relay", "session"}
+    for name in ("keys", "relay", "session"):
+        assert merged[name]["network_mode"] == "host", name
+        assert "ports" not in merged[name] and "expose" not in merged[name], name
+    assert merged["keys"]["command"] == base["keys"]["command"]
+    # The relay: the base command with its bind address on loopback.
+    relay = compose_argv("relay", HOSTNET_OVERRIDE)
+    want = compose_argv("relay")
+    want[want.index("--host") + 1] = "127.0.0.1"
+    assert relay == want
+    # The session: the base command plus --host (its HTTP side and metrics ports).
+    session = compose_argv("session", HOSTNET_OVERRIDE)
+    assert session == [*compose_argv("session"), "--host", "127.0.0.1"]
+    relay_host = urllib.parse.urlsplit(flag(session, "--relay")).hostname
+    assert merged["session"]["extra_hosts"] == [f"{relay_host}:127.0.0.1"]
+
+
+def test_the_smoke_test_knows_the_stack_it_runs() -> None:
+    script = (ROOT / "deploy" / "smoke.sh").read_text()
+    files = re.search(r'COMPOSE_FILE="([^"]+)"', script)
+    assert files is not None
+    assert [ROOT / f for f in files[1].split(":")] == [COMPOSE, OFFLINE_OVERRIDE, HOSTNET_OVERRIDE]
+    # The ports it checks are free: the relay's, serve's and every session's block.
+    ports = re.search(r"PORTS=\(([\d ]+)\)", script)
+    assert ports is not None
+    session = compose_argv("session", HOSTNET_OVERRIDE)
+    http_port = int(flag(session, "--http-port"))
+    blocks = int(flag(session, "--sessions")) * METRICS_PORTS_PER_SESSION
+    expected = [
+        int(flag(compose_argv("relay"), "--port")),
+        *range(http_port, http_port + 1 + blocks),
+    ]
+    assert [int(p) for p in ports[1].split()] == expected
+    images = re.search(r"IMAGES=\(([^)]+)\)", script)
+    assert images is not None
+    assert set(images[1].split()) == {
+        s["image"] for s in services(COMPOSE).values() if "build" in s and not s.get("profiles")
+    }
 
 
 # -- health checks are real routes ---------------------------------------------------

@@ -1,0 +1,311 @@
+"""The browser half of deploy/smoke.sh: the containerised stack, watched from the host.
+
+Run by deploy/smoke.sh with the project's venv once ``docker compose up`` is healthy
+(host networking, everything on 127.0.0.1). It checks, printing one ``smoke:`` line
+a step:
+
+1. every endpoint Prometheus would scrape (deploy/prometheus/prometheus.yml, its hosts
+   read as 127.0.0.1) answers 200 with upcast's metrics: Prometheus and Grafana
+   themselves cannot be pulled here;
+2. the player page the relay serves plays in the host's headless Chromium, and the
+   time from ``up`` to its first presented frame;
+3. what its canvas shows is the session's frame with the same id: the in-process tests
+   tap the session's frames (server/bench/snapshots.py), which a container does not
+   allow, so a second subscriber on the host (the load test's viewer) decodes the
+   same stream with FFmpeg and keeps thumbnails by frame id; canvas snapshots are
+   compared with them as the e2e tests do (``snapshot_psnr``);
+4. killing the session container's upscaler worker: ``upcast serve`` restarts it
+   (server/stack/local.py ``check_children``) and the page presents frames again.
+
+Exit status 0 only if all of it held; the reason otherwise, on stderr.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import base64
+import binascii
+import json
+import os
+import struct
+import subprocess
+import sys
+import threading
+import time
+import urllib.request
+from pathlib import Path
+from typing import Any
+
+import av
+import numpy as np
+import numpy.typing as npt
+import yaml  # type: ignore[import-untyped]
+from av.video.codeccontext import VideoCodecContext
+from playwright.sync_api import ConsoleMessage, sync_playwright
+
+from server.bench.snapshots import FrameThumbs, snapshot_psnr
+from server.loadtest.viewer import TIMING_TRACK, LoadViewer, ViewerConfig
+from server.media.cmaf_read import parse_fragment
+from server.moq.events import FrameReceived
+from server.ops.browser_paths import CHROMIUM, CHROMIUM_ARGS
+from server.quic.moq_link import MoqLink
+
+ROOT = Path(__file__).resolve().parents[1]
+PROMETHEUS = ROOT / "deploy" / "prometheus" / "prometheus.yml"
+MIN_PSNR_DB = 35.0  # issue 23: the received picture against the session's frame
+SNAPSHOTS = 8
+RESUMED_FRAMES = 30  # presented after the worker's restart: the stream is back
+PENDING = 120  # decoded pictures / timing records waiting for their other half
+
+
+class SmokeFailure(Exception):
+    pass
+
+
+def say(message: str) -> None:
+    print(f"smoke: {message}", flush=True)
+
+
+# -- the session's frames, decoded on the host -----------------------------------------
+
+
+def avcc_of(init: bytes) -> bytes:
+    """The avcC record (SPS/PPS) of an init segment: the decoder's extradata. The
+    segment is upcast's own (server/media/cmaf.py): one video track, one avcC."""
+    at = init.find(b"avcC")
+    if at < 4:
+        raise ValueError("init segment without avcC")
+    (size,) = struct.unpack_from(">I", init, at - 4)
+    return init[at + 4 : at - 4 + size]
+
+
+class ReferenceViewer(LoadViewer):
+    """The load test's viewer (same subscriptions as the page), which also decodes
+    every video frame and files its thumbnail under the frame id the timing track
+    gives its pts."""
+
+    def __init__(self, config: ViewerConfig, thumbs: FrameThumbs) -> None:
+        super().__init__(0, config, window=(0.0, float("inf")))
+        self.thumbs = thumbs
+        self.decoded = 0
+        self._decoder: VideoCodecContext | None = None
+        self._pictures: dict[int, npt.NDArray[np.uint8]] = {}  # pts_us -> RGB
+        self._frame_ids: dict[int, int] = {}  # pts_us -> frame id
+
+    def _read_init(self, rendition: object) -> None:
+        super()._read_init(rendition)
+        try:
+            init = base64.b64decode(rendition["container"]["init"])  # type: ignore[index]
+            extradata = avcc_of(init)
+        except (KeyError, TypeError, ValueError, binascii.Error, struct.error):
+            return
+        decoder = av.CodecContext.create("h264", "r")
+        assert isinstance(decoder, VideoCodecContext)
+        decoder.extradata = extradata
+        decoder.thread_count = 1  # frame threads would hold pictures back
+        self._decoder = decoder
+
+    def _on_frame(self, link: MoqLink, event: FrameReceived) -> None:
+        super()._on_frame(link, event)
+        track = self._tracks.get(event.subscription_id)
+        if track is not None and track == self._video_track:
+            self._decode(event.payload)
+        elif track == TIMING_TRACK:
+            try:
+                record = json.loads(event.payload)
+                pts, frame_id = int(record["pts_us"]), int(record["frame"])
+            except (ValueError, KeyError, TypeError):
+                return  # an audio record or a stranger: no video frame
+            self._frame_ids[pts] = frame_id
+            self._match(pts)
+
+    def _decode(self, fragment: bytes) -> None:
+        if self._decoder is None:
+            return
+        try:
+            info = parse_fragment(fragment, self._defaults)
+            pictures = self._decoder.decode(av.Packet(info.sample))
+        except (ValueError, struct.error, av.error.FFmpegError):
+            return  # before the first decodable picture: nothing to compare yet
+        pts = info.decode_time * 1_000_000 // self._timescale
+        for picture in pictures:
+            self._pictures[pts] = np.asarray(picture.to_ndarray(format="rgb24"), np.uint8)
+            self.decoded += 1
+            self._match(pts)
+
+    def _match(self, pts: int) -> None:
+        if pts in self._pictures and pts in self._frame_ids:
+            self.thumbs(self._frame_ids.pop(pts), self._pictures.pop(pts))
+        for waiting in (self._pictures, self._frame_ids):
+            while len(waiting) > PENDING:
+                waiting.pop(next(iter(waiting)))
+
+
+def start_reference(config: ViewerConfig, thumbs: FrameThumbs) -> ReferenceViewer:
+    """The viewer on its own event loop, in a daemon thread (playwright's sync API
+    owns the main thread)."""
+    viewer = ReferenceViewer(config, thumbs)
+    loop = asyncio.new_event_loop()
+    threading.Thread(target=loop.run_forever, daemon=True, name="reference").start()
+    asyncio.run_coroutine_threadsafe(viewer.connect(), loop).result(timeout=30)
+    if not viewer.stats.connected:
+        raise SmokeFailure(f"host viewer did not connect to the relay: {viewer.stats.error}")
+    return viewer
+
+
+# -- HTTP -------------------------------------------------------------------------------
+
+
+def get(url: str, timeout_s: float = 5.0) -> tuple[int, bytes]:
+    try:
+        with urllib.request.urlopen(url, timeout=timeout_s) as response:
+            return int(response.status), bytes(response.read())
+    except OSError as exc:
+        raise SmokeFailure(f"GET {url}: {exc}") from None
+
+
+def sessions(serve_url: str) -> dict[str, dict[str, Any]]:
+    _, body = get(serve_url + "/sessions")
+    return {str(row["broadcast"]): row for row in json.loads(body)["sessions"]}
+
+
+def check_scrape_targets() -> None:
+    """Every target of the Prometheus configuration, as Prometheus would scrape it."""
+    config = yaml.safe_load(PROMETHEUS.read_text())
+    checked = 0
+    for job in config["scrape_configs"]:
+        path = job.get("metrics_path", "/metrics")
+        for group in job["static_configs"]:
+            for target in group["targets"]:
+                port = str(target).rsplit(":", 1)[1]
+                url = f"http://127.0.0.1:{port}{path}"
+                status, body = get(url)
+                if status != 200 or b"upcast_" not in body:
+                    raise SmokeFailure(f"{job['job_name']} target {target}: {url} gave {status}")
+                checked += 1
+    say(f"metrics: all {checked} Prometheus scrape targets answer with upcast metrics")
+
+
+# -- the page ---------------------------------------------------------------------------
+
+
+def presented(page: Any) -> int:
+    return int(page.evaluate("() => window.upcast ? window.upcast.stats().framesPresented : 0"))
+
+
+def wait_presented(page: Any, count: int, timeout_s: float) -> None:
+    page.wait_for_function(
+        "n => window.upcast && window.upcast.stats().framesPresented >= n",
+        arg=count,
+        timeout=timeout_s * 1000,
+    )
+
+
+def check_picture(page: Any, thumbs: FrameThumbs, when: str) -> None:
+    try:
+        samples = snapshot_psnr(page, thumbs, count=SNAPSHOTS)
+    except RuntimeError as exc:
+        raise SmokeFailure(f"{when}: {exc}") from None
+    shown = ", ".join(f"{db:.1f}" for db in samples)
+    say(f"picture {when}: PSNR against the session's frame with the same id: {shown} dB")
+    if min(samples) < MIN_PSNR_DB:
+        raise SmokeFailure(f"{when}: a snapshot under {MIN_PSNR_DB:g} dB ({shown})")
+
+
+def kill_worker(serve_url: str, broadcast: str, page: Any, timeout_s: float) -> None:
+    before = sessions(serve_url)[broadcast]
+    pid, restarts = before["worker_pid"], int(before["worker_restarts"])
+    if not pid:
+        raise SmokeFailure(f"/sessions gives no worker pid for {broadcast}: {before}")
+    # The pid is the container's (its own pid namespace): kill it in there, as the
+    # image's user (sh's builtin kill: the slim images have no procps).
+    subprocess.run(
+        ["docker", "compose", "exec", "-T", "session", "sh", "-c", f"kill -9 {int(pid)}"],
+        check=True,
+    )
+    killed_at = time.monotonic()
+    shown_at_kill = presented(page)
+    say(f"worker: killed pid {pid} of {broadcast} (SIGKILL in the session container)")
+    deadline = killed_at + timeout_s
+    while True:
+        row = sessions(serve_url)[broadcast]
+        if int(row["worker_restarts"]) > restarts and row["worker_pid"] not in (None, pid):
+            break
+        if time.monotonic() > deadline:
+            raise SmokeFailure(f"worker of {broadcast} not restarted in {timeout_s:.0f} s: {row}")
+        time.sleep(0.1)
+    restarted_s = time.monotonic() - killed_at
+    try:
+        wait_presented(page, shown_at_kill + RESUMED_FRAMES, max(1.0, deadline - time.monotonic()))
+    except Exception as exc:  # playwright's TimeoutError
+        raise SmokeFailure(f"the page presented no new frames after the restart: {exc}") from None
+    resumed_s = time.monotonic() - killed_at
+    say(
+        f"worker: restarted as pid {row['worker_pid']} {restarted_s:.1f} s after the kill; "
+        f"the page presented {RESUMED_FRAMES} new frames {resumed_s:.1f} s after it"
+    )
+
+
+def console_errors(message: ConsoleMessage) -> None:
+    if message.type == "error":
+        say(f"page console: {message.text}")
+
+
+def run(args: argparse.Namespace) -> None:
+    relay_url = f"http://127.0.0.1:{args.relay_port}/"
+    serve_url = f"http://127.0.0.1:{args.serve_port}"
+    check_scrape_targets()
+    states = {name: row["state"] for name, row in sessions(serve_url).items()}
+    say(f"sessions: {states}")
+    if args.broadcast not in states:
+        raise SmokeFailure(f"no session publishes {args.broadcast}")
+
+    thumbs = FrameThumbs()
+    config = ViewerConfig(relay_url, args.broadcast, cert_hash_hex=None, connect_timeout_s=10)
+    viewer = start_reference(config, thumbs)
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=str(CHROMIUM), args=list(CHROMIUM_ARGS))
+        try:
+            page = browser.new_page(viewport={"width": 1400, "height": 900})
+            page.on("console", console_errors)
+            page.goto(f"{relay_url}?broadcast={args.broadcast}&overlay=0")
+            wait_presented(page, 1, args.timeout)
+            say(f"first frame in the browser {time.time() - args.up_at:.1f} s after `up`")
+            stats = page.evaluate("() => window.upcast.stats()")
+            say(
+                f"page: {stats['version']}, {stats['width']}x{stats['height']}, "
+                f"errors {stats['errors']}"
+            )
+            if stats["errors"]:
+                raise SmokeFailure(f"the page reports errors: {stats['errors']}")
+            wait_presented(page, 60, args.timeout)
+            check_picture(page, thumbs, "playing")
+            say(f"host viewer decoded {viewer.decoded} frames ({viewer.stats.bad_fragments} bad)")
+            kill_worker(serve_url, args.broadcast, page, args.timeout)
+            check_picture(page, thumbs, "after the worker's restart")
+        finally:
+            browser.close()
+            viewer.close()
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--up-at", type=float, required=True, help="epoch s of `compose up`")
+    parser.add_argument("--broadcast", default="game-1")
+    parser.add_argument("--relay-port", type=int, default=4443)
+    parser.add_argument("--serve-port", type=int, default=4444)
+    parser.add_argument("--timeout", type=float, default=90.0, help="seconds a step may take")
+    args = parser.parse_args(argv)
+    if "COMPOSE_FILE" not in os.environ:
+        parser.error("run from deploy/smoke.sh (COMPOSE_FILE names the stack's files)")
+    try:
+        run(args)
+    except SmokeFailure as exc:
+        print(f"smoke: FAILED: {exc}", file=sys.stderr, flush=True)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
