@@ -373,3 +373,52 @@ def test_cache_aware_training_reuses_the_deep_branch_and_keeps_the_weight_names(
     with pytest.raises(ValueError, match="cached_share"):
         train(model, data, TrainConfig(steps=1, cached_share=1.5), 2, progress=False)
     assert loop.TrainConfig().cached_share == 0.0  # off unless asked
+
+
+# -- output range (issue 19) ------------------------------------------------------------
+
+
+def _range_frame(color: np.ndarray, index: int) -> RenderFrame:
+    from server.frames.frame import Camera, FrameFlags, FrameMeta
+    from server.game.render.transforms import jitter_offset, jitter_phase_count
+
+    h, w = color.shape[:2]
+    return RenderFrame(
+        color=color,
+        depth=np.full((h, w), 0.5, np.float32),
+        motion=np.full((h, w, 2), 0.3, np.float32),
+        dynamic_mask=np.zeros((h, w), np.uint8),
+        meta=FrameMeta(
+            index, Camera.identity(), jitter_offset(index, jitter_phase_count(2.0)),
+            FrameFlags.NONE,
+        ),
+    )  # fmt: skip
+
+
+def _step_and_checkerboard() -> list[np.ndarray]:
+    step = np.full((32, 48, 3), 64, np.uint8)
+    step[:, 24:] = 191
+    yy, xx = np.mgrid[:32, :48]
+    checker = np.where(((yy + xx) % 2 == 0)[..., None], 64, 191).astype(np.uint8).repeat(3, 2)
+    return [step, checker]
+
+
+@pytest.mark.parametrize("name", ["unet", "unetpp"])
+def test_output_stays_inside_the_inputs_local_range(
+    name: str, shipped: dict[str, NeuralUpscaler]
+) -> None:
+    """A 64|191 step and a one-pixel 64/191 checkerboard never come out darker or brighter
+    than their input (no halo, no ringing), and a constant frame stays constant, frame
+    after frame with the network's own history."""
+    up = shipped[name]
+    for image in _step_and_checkerboard():
+        up.reset()
+        for i in range(6):
+            out = to_uint8(up.upscale(_range_frame(image, i), Size(96, 64))).astype(int)
+            assert out.min() >= 64 and out.max() <= 191, (i, out.min(), out.max())
+    for level in (0, 137, 255):
+        up.reset()
+        flat = np.full((32, 48, 3), level, np.uint8)
+        for i in range(4):
+            out = to_uint8(up.upscale(_range_frame(flat, i), Size(96, 64))).astype(int)
+            assert np.abs(out - level).max() <= 1, (level, i)

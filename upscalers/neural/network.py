@@ -92,17 +92,33 @@ def pad_to_multiple(x: torch.Tensor, multiple: int) -> torch.Tensor:
     return F.pad(x, (0, pw, 0, ph), mode="replicate")
 
 
+def local_range(color: torch.Tensor, scale: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(N, 3, h, w) colour -> the min and max of each render pixel's 3x3 neighbourhood
+    (edges replicated), repeated over its s s sub-pixel phases: (N, 3 s s, h, w) in
+    ``pixel_shuffle`` order (channel c s s + phase)."""
+    padded = F.pad(color, (1, 1, 1, 1), mode="replicate")
+    hi = F.max_pool2d(padded, 3, stride=1)
+    lo = -F.max_pool2d(-padded, 3, stride=1)
+    phases = scale * scale
+    return lo.repeat_interleave(phases, dim=1), hi.repeat_interleave(phases, dim=1)
+
+
 def predict(model: nn.Module, features: torch.Tensor, scale: int) -> torch.Tensor:
     """Features (N, C, h, w) -> image (N, 3, s h, s w): the network's residual on top of
     a bilinear upsampling of the colour from where its samples really lay (jitter
-    compensated), clamped to [0, 1]. Any h, w (padded to the network's multiple,
-    cropped back)."""
+    compensated), clamped to the 3x3 range of the frame's own colour around each
+    display pixel's render pixel, as the temporal upscaler's output is: detail
+    without a halo or ringing past the input's local range (an unclamped U-Net took
+    a 64|191 step to 46..209 and black to 3). Training goes through the same clamp.
+    Any h, w (padded to the network's multiple, cropped back)."""
     h, w = features.shape[-2:]
     multiple = int(getattr(model, "multiple", 1))
     x = pad_to_multiple(features, multiple)
     residual = model(x)[..., :h, :w]
-    phases = bilinear_phases(features[:, :3], scale, jitter_of(features)) + residual
-    return F.pixel_shuffle(phases, scale).clamp(0.0, 1.0)
+    color = features[:, :3]
+    phases = bilinear_phases(color, scale, jitter_of(features)) + residual
+    lo, hi = local_range(color, scale)
+    return F.pixel_shuffle(torch.minimum(torch.maximum(phases, lo), hi), scale)
 
 
 def with_memory_format(model: nn.Module, fmt: torch.memory_format) -> nn.Module:
