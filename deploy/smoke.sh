@@ -148,11 +148,13 @@ fi
 had_images=1
 for image in "${IMAGES[@]}"; do docker image inspect "$image" >/dev/null 2>&1 || had_images=0; done
 t0=$SECONDS
-docker compose --progress quiet build "${SERVICES[@]}" >/dev/null \
+# (Compose's warning about that builder, once a build, says nothing new.)
+not_bake_warning() { grep -v 'COMPOSE_BAKE=false is deprecated' >&2 || true; }
+docker compose --progress quiet build "${SERVICES[@]}" 2> >(not_bake_warning) >/dev/null \
     || { docker compose --progress plain build "${SERVICES[@]}" >&2 || true; fail "docker compose build"; }
 first_build_s=$((SECONDS - t0))
 t0=$SECONDS
-docker compose --progress quiet build "${SERVICES[@]}" >/dev/null
+docker compose --progress quiet build "${SERVICES[@]}" 2> >(not_bake_warning) >/dev/null
 warm_build_s=$((SECONDS - t0))
 if [ "$had_images" = 0 ]; then kind="cold"; else kind="first (images were there)"; fi
 say "build: $kind ${first_build_s} s, warm (no change) ${warm_build_s} s"
