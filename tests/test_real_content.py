@@ -220,6 +220,10 @@ def test_eval_real_content_writes_json_table_and_plots(tmp_path: Path) -> None:
     assert len(temporal["kinds"]["pan"]["psnr_per_frame"]) == 8
     assert len(temporal["kinds"]["first"]["psnr_per_frame"]) == 1
     assert temporal["kinds"]["cut"]["measured_frames"] == [4, 8]
+    # One source folder ("pics"): its mean is the mean over both photographs.
+    by_source = temporal["kinds"]["pan"]["psnr_by_source"]
+    assert list(by_source) == ["pics"]
+    assert by_source["pics"] == pytest.approx(temporal["kinds"]["pan"]["psnr_db"])
     cases = [c for c in report["cases"] if c.get("suite") == "real_content"]
     assert len(cases) == 3 * 5 and all(15 < c["psnr_db"] < 60 for c in cases)
     assert any("cut: temporal's frames 0-3 after the cut" in n for n in report["notes"])
@@ -227,3 +231,21 @@ def test_eval_real_content_writes_json_table_and_plots(tmp_path: Path) -> None:
     assert "| temporal |" in table and "pan (f3-7)" in table
     for png in ("r.png", "r_cut.png"):
         assert (tmp_path / png).read_bytes()[:4] == b"\x89PNG"
+
+
+def test_networks_are_checked_against_bicubic_on_every_source() -> None:
+    from server.eval.real_content_report import real_content_checks
+
+    def method(first: float, by_source: dict[str, float]) -> dict[str, object]:
+        kind = {"psnr_db": first, "psnr_per_frame": [first], "measured_frames": [0, 1],
+                "psnr_by_source": by_source}  # fmt: skip
+        return {"temporal": False, "kinds": {"first": kind}}
+
+    section = {"scales": {"2": {"methods": {
+        "bicubic": method(30.0, {"a": 29.0, "b": 31.0}),
+        "unet": method(31.0, {"a": 30.5, "b": 30.9}),
+    }}}}  # fmt: skip
+    checks = dict(real_content_checks(section))
+    assert checks["photos 2x first frame: unet >= bicubic + 0.5 dB (+1.00)"]
+    assert checks["photos 2x first on a: unet >= bicubic (+1.50)"]
+    assert not checks["photos 2x first on b: unet >= bicubic (-0.10)"]

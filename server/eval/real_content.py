@@ -112,6 +112,7 @@ def run_suite(
                     "worst_image_psnr_db": float(
                         np.min(np.mean(np.asarray(r.psnr)[:, span[0] : span[1]], axis=1))
                     ),
+                    "psnr_by_source": _by_source(images, r.psnr, span),
                 }
                 cases.append(
                     {
@@ -139,6 +140,18 @@ def run_suite(
             }
         section["scales"][f"{scale:g}"] = {"render_size": str(render), "methods": per_method}
     return cases, section
+
+
+def _by_source(
+    images: list[Path], psnr: list[list[float]], span: tuple[int, int]
+) -> dict[str, float]:
+    """Mean PSNR over the measured frames per content source (the folder above an
+    image's split folder: mate-nature, plasma-photos, ...), in the order first met."""
+    per_image = np.mean(np.asarray(psnr, dtype=np.float64)[:, span[0] : span[1]], axis=1)
+    sources: dict[str, list[float]] = {}
+    for path, value in zip(images, per_image, strict=True):
+        sources.setdefault(path.parent.parent.name, []).append(float(value))
+    return {name: float(np.mean(values)) for name, values in sources.items()}
 
 
 def measured_span(kind: str, length: int, measure_from: int) -> tuple[int, int]:
