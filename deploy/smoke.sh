@@ -26,8 +26,9 @@ cd "$(dirname "$0")/.."
 BASE_IMAGE="${UPCAST_BASE_IMAGE:-upcast/base:bookworm-py3.11}"
 export UPCAST_BASE_IMAGE="$BASE_IMAGE"
 WHEEL_CACHE="${XDG_CACHE_HOME:-$HOME/.cache}/upcast/wheelhouse"
-# Compose reads both: the stack's files, and a project name of its own, so a stack a
-# person runs here (project `upcast`) is neither used nor removed.
+# Read by every `docker compose` below: the stack's files, and a project name of the
+# smoke test's own, so that a stack someone runs here (project `upcast`) is neither
+# used nor removed.
 export COMPOSE_FILE="docker-compose.yml:deploy/docker-compose.offline.yml:deploy/docker-compose.hostnet.yml"
 export COMPOSE_PROJECT_NAME="upcast-smoke"
 # Compose v2.40 would build through `docker buildx bake`; there is no buildx here, and
