@@ -422,3 +422,35 @@ def test_output_stays_inside_the_inputs_local_range(
         for i in range(4):
             out = to_uint8(up.upscale(_range_frame(flat, i), Size(96, 64))).astype(int)
             assert np.abs(out - level).max() <= 1, (level, i)
+
+
+def test_fresh_start_trains_the_frame_without_history(tmp_path: Path) -> None:
+    from server.train import loop
+    from server.train.loop import TrainConfig, train
+    from upscalers.neural.network import build_model
+
+    data = generate(
+        DatasetSpec(sequences=1, frames=5, truth_frames=3, render_size="32x24",
+                    scenes=("static",)),
+        progress=False,
+    )  # fmt: skip
+    unrolls: list[tuple[int, bool]] = []
+    batch = loop._batch
+
+    def spy(*args: object, **kwargs: object) -> object:
+        frames, truths = batch(*args, **kwargs)  # type: ignore[arg-type]
+        unrolls.append((len(frames), truths[0] is not None))
+        return frames, truths
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(loop, "_batch", spy)
+        train(build_model("unet", 2), data, TrainConfig(steps=6, batch=1, crop=16,
+              fresh_share=1.0), 2, progress=False)  # fmt: skip
+        # Every unroll starts at the first frame with truth: no warm-up, trained at once.
+        assert unrolls == [(3, True)] * 6
+        unrolls.clear()
+        train(build_model("unet", 2), data, TrainConfig(steps=12, batch=1, crop=16), 2,
+              progress=False)  # fmt: skip
+        assert any(n > 3 for n, _ in unrolls)  # a uniform start warms up most unrolls
+    with pytest.raises(ValueError, match="fresh_share"):
+        train(build_model("unet", 2), data, TrainConfig(steps=1, fresh_share=2.0), 2)

@@ -112,6 +112,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--threads", type=_positive_int, default=2, help="torch CPU threads")
     parser.add_argument(
+        "--fresh-start",
+        type=_share,
+        default=0.0,
+        help="share of steps whose unroll starts at the first frame with ground truth, "
+        "so the frame without history (first frame, cut, reset) is trained more often "
+        "(0: a uniform start, 1 step in frames - 2)",
+    )
+    parser.add_argument(
         "--real-content",
         type=Path,
         default=None,
@@ -202,6 +210,7 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
         minutes=args.minutes,
         cached_share=args.cache_aware,
+        fresh_share=args.fresh_start,
     )
     result = train(model, data, cfg, scale)
     if result.stopped_early:
@@ -222,6 +231,7 @@ def run(args: argparse.Namespace) -> int:
         "crop": cfg.crop,
         "lr": cfg.lr,
         "cache_aware": cfg.cached_share,
+        "fresh_start": cfg.fresh_share,
         "final_l1": result.final_loss,
         "final_l1_by_part": json.dumps(result.final_loss_by_part),
         "real_content": None if args.real_content is None else args.real_share,
