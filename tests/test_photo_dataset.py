@@ -12,7 +12,6 @@ import pytest
 import torch
 from PIL import Image
 
-from server.eval.real_content_sequences import area_sample
 from server.frames.frame import Size
 from server.train.loop import DataMix, TrainConfig, train
 from server.train.mix import build_mix
@@ -54,13 +53,17 @@ def content(tmp_path: Path) -> Path:
     return tmp_path
 
 
-def test_affine_box_sampling_equals_the_evaluations_without_rotation() -> None:
+def test_affine_box_sampling_is_the_box_mean_on_whole_pixels() -> None:
+    # Two source pixels a display pixel from the origin: each output pixel is the mean
+    # of a 2x2 block, what OpenCV's area resize computes; shifted by whole pixels, the
+    # blocks move with it.
     src = _noise_picture(3).astype(np.float32)
-    a = np.diag([1.7, 1.7])
-    b = np.array([12.3, 20.6])
-    ours = area_sample_affine(src, a, b, Size(64, 48))
-    theirs = area_sample(src, 1.7, 1.7, 12.3, 20.6, Size(64, 48))
-    assert np.abs(ours - theirs).max() < 1e-3
+    out = area_sample_affine(src, np.diag([2.0, 2.0]), np.array([0.0, 0.0]), Size(64, 48))
+    boxes = cv2.resize(src[:96, :128], (64, 48), interpolation=cv2.INTER_AREA)
+    assert np.abs(out - boxes).max() < 1e-3
+    shifted = area_sample_affine(src, np.diag([2.0, 2.0]), np.array([6.0, 4.0]), Size(64, 48))
+    assert np.abs(shifted - cv2.resize(src[4:100, 6:134], (64, 48),
+                                       interpolation=cv2.INTER_AREA)).max() < 1e-3  # fmt: skip
 
 
 def test_a_rotated_box_keeps_the_mean_of_a_smooth_picture() -> None:

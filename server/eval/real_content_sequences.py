@@ -31,6 +31,7 @@ from server.game.render.transforms import jitter_offset, jitter_phase_count
 
 F32 = npt.NDArray[np.float32]
 U8 = npt.NDArray[np.uint8]
+F64 = npt.NDArray[np.float64]
 
 KINDS = ("first", "pan", "zoom", "still", "cut")
 # Source pixels per display pixel at most: two makes each display pixel a box over
@@ -65,18 +66,24 @@ class Sequence:
 
 
 def area_sample(src: F32, a_x: float, a_y: float, b_x: float, b_y: float, out: Size) -> F32:
-    """Output pixel u (continuous) covers source ``a * u + b``: each output pixel is the
-    box average of its footprint, sampled ``k`` x ``k`` times (k >= the footprint in
-    source pixels, bilinear between source pixels) and averaged."""
-    k = max(1, math.ceil(max(a_x, a_y) - 1e-6))
+    """Output pixel u (continuous) covers source ``a * u + b`` per axis: the box average
+    of its footprint (``area_sample_affine`` with a diagonal map)."""
+    return area_sample_affine(src, np.diag([a_x, a_y]), np.array([b_x, b_y]), out)
+
+
+def area_sample_affine(
+    src: F32, a: npt.NDArray[np.float64], b: npt.NDArray[np.float64], out: Size
+) -> F32:
+    """Output pixel u (continuous) covers source ``a @ u + b``: the box average of its
+    footprint, sampled k x k times (k >= the footprint's extent in source pixels,
+    bilinear between source pixels) and averaged; a rotated footprint is covered by
+    the rotated k x k grid."""
+    extent = float(np.abs(a).sum(axis=1).max())
+    k = max(1, math.ceil(extent - 1e-6))
+    sub = a / k
     # OpenCV's pixel x sits at continuous x + 0.5 on both sides of the map.
-    m = np.array(
-        [
-            [a_x / k, 0.0, a_x * 0.5 / k + b_x - 0.5],
-            [0.0, a_y / k, a_y * 0.5 / k + b_y - 0.5],
-        ],
-        dtype=np.float32,
-    )
+    offset = a @ np.array([0.5 / k, 0.5 / k]) + b - 0.5
+    m = np.array([[sub[0, 0], sub[0, 1], offset[0]], [sub[1, 0], sub[1, 1], offset[1]]], np.float32)
     big = cv2.warpAffine(
         src,
         m,
@@ -86,8 +93,9 @@ def area_sample(src: F32, a_x: float, a_y: float, b_x: float, b_y: float, out: S
     )
     if k == 1:
         return np.asarray(big, dtype=np.float32)
-    small = cv2.resize(big, (out.width, out.height), interpolation=cv2.INTER_AREA)
-    return np.asarray(small, dtype=np.float32)
+    return np.asarray(
+        cv2.resize(big, (out.width, out.height), interpolation=cv2.INTER_AREA), dtype=np.float32
+    )
 
 
 def source_scale(src_size: Size, display: Size) -> float:

@@ -29,11 +29,11 @@ import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 import numpy.typing as npt
 from PIL import Image
 
+from server.eval.real_content_sequences import area_sample_affine
 from server.eval.real_content_sources import IMAGE_SUFFIXES, TRAIN_DIR
 from server.frames.frame import Camera, Size
 from server.game.render.transforms import jitter_offset, jitter_phase_count
@@ -106,31 +106,6 @@ def training_pictures(content_dir: Path, source: str) -> list[Path]:
             f"`upcast eval content --fetch --dir {content_dir}`"
         )
     return found
-
-
-def area_sample_affine(src: F32, a: F64, b: F64, out: Size) -> F32:
-    """Output pixel u (continuous) covers source ``a @ u + b``: the box average of its
-    footprint, sampled k x k times (k >= the footprint's extent in source pixels,
-    bilinear between source pixels) and averaged; a rotated footprint is covered by
-    the rotated k x k grid."""
-    extent = float(np.abs(a).sum(axis=1).max())
-    k = max(1, math.ceil(extent - 1e-6))
-    sub = a / k
-    # OpenCV's pixel x sits at continuous x + 0.5 on both sides of the map.
-    offset = a @ np.array([0.5 / k, 0.5 / k]) + b - 0.5
-    m = np.array([[sub[0, 0], sub[0, 1], offset[0]], [sub[1, 0], sub[1, 1], offset[1]]], np.float32)
-    big = cv2.warpAffine(
-        src,
-        m,
-        (out.width * k, out.height * k),
-        flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-        borderMode=cv2.BORDER_REFLECT,
-    )
-    if k == 1:
-        return np.asarray(big, dtype=np.float32)
-    return np.asarray(
-        cv2.resize(big, (out.width, out.height), interpolation=cv2.INTER_AREA), dtype=np.float32
-    )
 
 
 @dataclass(frozen=True)
