@@ -66,10 +66,17 @@ def _keys(page: Any, at_least: int = 0) -> list[list[str]]:
 
 
 def _settle(page: Any) -> None:
-    # Two animation frames and a round trip: anything sent has arrived.
+    # Two animation frames and a round trip: anything sent has arrived. The marker is
+    # looked for among the messages after the send, not as the last one: the player's
+    # feedback (every 250 ms, issue 21) may arrive after it, and the wait then timed out.
     page.evaluate("() => new Promise(r => requestAnimationFrame(() => requestAnimationFrame(r)))")
-    page.evaluate("() => window.upcast.send({type: 'keyframe'})")
-    page.wait_for_function("() => window.loopback.inputs.at(-1).type === 'keyframe'")
+    sent = page.evaluate(
+        "() => { const n = window.loopback.inputs.length;"
+        " window.upcast.send({type: 'keyframe'}); return n; }"
+    )
+    page.wait_for_function(
+        "n => window.loopback.inputs.slice(n).some(m => m.type === 'keyframe')", arg=sent
+    )
 
 
 def _outline(page: Any) -> str:
