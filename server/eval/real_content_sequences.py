@@ -71,9 +71,7 @@ def area_sample(src: F32, a_x: float, a_y: float, b_x: float, b_y: float, out: S
     return area_sample_affine(src, np.diag([a_x, a_y]), np.array([b_x, b_y]), out)
 
 
-def area_sample_affine(
-    src: F32, a: npt.NDArray[np.float64], b: npt.NDArray[np.float64], out: Size
-) -> F32:
+def area_sample_affine(src: F32, a: F64, b: F64, out: Size) -> F32:
     """Output pixel u (continuous) covers source ``a @ u + b``: the box average of its
     footprint, sampled k x k times (k >= the footprint's extent in source pixels,
     bilinear between source pixels) and averaged; a rotated footprint is covered by

@@ -155,18 +155,33 @@ def generate(spec: DatasetSpec, progress: bool = True) -> Dataset:
     return data
 
 
-def load_or_generate(spec: DatasetSpec, data_dir: Path, progress: bool = True) -> Dataset:
-    """The dataset of ``spec`` from ``data_dir`` if cached there, else rendered and saved."""
-    path = data_dir / f"train-{spec.key()}.npz"
-    if path.is_file():
-        try:
-            with np.load(path) as z:
-                return Dataset(**{k: z[k] for k in Dataset.__dataclass_fields__})
-        except (OSError, ValueError, KeyError) as e:
-            print(f"[data] cached {path} unreadable ({e}); rendering again", file=sys.stderr)
-    data = generate(spec, progress)
-    data_dir.mkdir(parents=True, exist_ok=True)
+def load_cached(path: Path) -> Dataset | None:
+    """The dataset saved at ``path``, or None when there is none or it is unreadable
+    (said on stderr: the caller makes it again)."""
+    if not path.is_file():
+        return None
+    try:
+        with np.load(path) as z:
+            return Dataset(**{k: z[k] for k in Dataset.__dataclass_fields__})
+    except (OSError, ValueError, KeyError) as e:
+        print(f"[data] cached {path} unreadable ({e}); making it again", file=sys.stderr)
+        return None
+
+
+def save(data: Dataset, path: Path) -> None:
+    """Write ``data`` to ``path`` through a temporary file, so a killed run never leaves
+    a truncated cache behind."""
+    path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".tmp.npz")
     np.savez(tmp, **{k: getattr(data, k) for k in Dataset.__dataclass_fields__})
     tmp.replace(path)
+
+
+def load_or_generate(spec: DatasetSpec, data_dir: Path, progress: bool = True) -> Dataset:
+    """The dataset of ``spec`` from ``data_dir`` if cached there, else rendered and saved."""
+    path = data_dir / f"train-{spec.key()}.npz"
+    data = load_cached(path)
+    if data is None:
+        data = generate(spec, progress)
+        save(data, path)
     return data

@@ -84,6 +84,7 @@ def _batch(
     ys = rng.integers(0, h - crop + 1, cfg.batch)
     xs = rng.integers(0, w - crop + 1, cfg.batch)
     flips = rng.random(cfg.batch) < 0.5
+    # Drawn even when fresh, so the crops that follow stay the same draws.
     start = int(rng.integers(0, data.first_truth + 1))
     if fresh:
         start = data.first_truth

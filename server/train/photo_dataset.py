@@ -24,22 +24,21 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import sys
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 import numpy.typing as npt
-from PIL import Image
 
+from server.eval.real_content import load_rgb
 from server.eval.real_content_sequences import area_sample_affine
 from server.eval.real_content_sources import IMAGE_SUFFIXES, TRAIN_DIR
 from server.frames.frame import Camera, Size
 from server.game.render.transforms import jitter_offset, jitter_phase_count
 from server.ops.progress import elapsed_and_left
 from server.ops.progress import progress as report_progress
-from server.train.dataset import Dataset
+from server.train.dataset import Dataset, load_cached, save
 
 F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
@@ -172,11 +171,6 @@ def _to_u8(image: F32) -> U8:
     return np.clip(np.rint(image), 0, 255).astype(np.uint8)
 
 
-def _load(path: Path) -> F32:
-    with Image.open(path) as image:
-        return np.asarray(image.convert("RGB"), dtype=np.float32)
-
-
 def generate(
     spec: PhotoSpec, pictures: list[Path], label: str = "photos", progress: bool = True
 ) -> Dataset:
@@ -199,7 +193,7 @@ def generate(
     for i in range(spec.sequences):
         path = pictures[int(rng.integers(0, len(pictures)))]
         if path not in loaded:
-            loaded[path] = _load(path)
+            loaded[path] = load_rgb(path).astype(np.float32)
         src = loaded[path]
         if rng.random() < 0.5:  # mirrored pictures double the content
             src = np.ascontiguousarray(src[:, ::-1])
@@ -229,15 +223,8 @@ def load_or_generate_photos(
 ) -> Dataset:
     """The picture dataset of ``spec`` from ``data_dir`` if cached there, else made and saved."""
     path = data_dir / f"train-{label}-{spec.key(pictures)}.npz"
-    if path.is_file():
-        try:
-            with np.load(path) as z:
-                return Dataset(**{k: z[k] for k in Dataset.__dataclass_fields__})
-        except (OSError, ValueError, KeyError) as e:
-            print(f"[data] cached {path} unreadable ({e}); making it again", file=sys.stderr)
-    data = generate(spec, pictures, label, progress)
-    data_dir.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp.npz")
-    np.savez(tmp, **{k: getattr(data, k) for k in Dataset.__dataclass_fields__})
-    tmp.replace(path)
+    data = load_cached(path)
+    if data is None:
+        data = generate(spec, pictures, label, progress)
+        save(data, path)
     return data

@@ -92,15 +92,11 @@ def pad_to_multiple(x: torch.Tensor, multiple: int) -> torch.Tensor:
     return F.pad(x, (0, pw, 0, ph), mode="replicate")
 
 
-def local_range(color: torch.Tensor, scale: int) -> tuple[torch.Tensor, torch.Tensor]:
+def local_range(color: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """(N, 3, h, w) colour -> the min and max of each render pixel's 3x3 neighbourhood
-    (edges replicated), repeated over its s s sub-pixel phases: (N, 3 s s, h, w) in
-    ``pixel_shuffle`` order (channel c s s + phase)."""
+    (edges replicated), each (N, 3, h, w)."""
     padded = F.pad(color, (1, 1, 1, 1), mode="replicate")
-    hi = F.max_pool2d(padded, 3, stride=1)
-    lo = -F.max_pool2d(-padded, 3, stride=1)
-    phases = scale * scale
-    return lo.repeat_interleave(phases, dim=1), hi.repeat_interleave(phases, dim=1)
+    return -F.max_pool2d(-padded, 3, stride=1), F.max_pool2d(padded, 3, stride=1)
 
 
 def predict(model: nn.Module, features: torch.Tensor, scale: int) -> torch.Tensor:
@@ -108,8 +104,8 @@ def predict(model: nn.Module, features: torch.Tensor, scale: int) -> torch.Tenso
     a bilinear upsampling of the colour from where its samples really lay (jitter
     compensated), clamped to the 3x3 range of the frame's own colour around each
     display pixel's render pixel, as the temporal upscaler's output is: detail
-    without a halo or ringing past the input's local range (an unclamped U-Net took
-    a 64|191 step to 46..209 and black to 3). Training goes through the same clamp.
+    without a halo or ringing past the input's local range (the unclamped game-only
+    U-Net took a 64|191 step to 57..197). Training goes through the same clamp.
     Any h, w (padded to the network's multiple, cropped back)."""
     h, w = features.shape[-2:]
     multiple = int(getattr(model, "multiple", 1))
@@ -117,8 +113,12 @@ def predict(model: nn.Module, features: torch.Tensor, scale: int) -> torch.Tenso
     residual = model(x)[..., :h, :w]
     color = features[:, :3]
     phases = bilinear_phases(color, scale, jitter_of(features)) + residual
-    lo, hi = local_range(color, scale)
-    return F.pixel_shuffle(torch.minimum(torch.maximum(phases, lo), hi), scale)
+    # Viewed as (N, 3, s s, h, w), every sub-pixel phase of a render pixel takes that
+    # pixel's range by broadcasting (pixel_shuffle order: channel c s s + phase).
+    lo, hi = local_range(color)
+    grouped = phases.reshape(color.shape[0], 3, scale * scale, h, w)
+    clamped = torch.clamp(grouped, lo.unsqueeze(2), hi.unsqueeze(2))
+    return F.pixel_shuffle(clamped.reshape(phases.shape), scale)
 
 
 def with_memory_format(model: nn.Module, fmt: torch.memory_format) -> nn.Module:
