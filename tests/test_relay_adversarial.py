@@ -367,10 +367,14 @@ def test_random_bytes_on_any_stream_kind_harm_no_one_else(
 
 def test_garbage_connections_end_by_the_connect_deadline(cert: CertBundle) -> None:
     """Garbage on streams the relay ignores closes nothing by itself; the connect
-    deadline still ends every connection that never had a CONNECT accepted."""
+    deadline (1 s here) still ends every connection that never had a CONNECT accepted,
+    well before the 10 s idle timeout would, and the closed ones are then forgotten."""
 
     async def check(relay: Relay, result: AttackResult) -> None:
-        await until(lambda: relay.quic_connections <= 1 + GOOD_VIEWERS, 4.0)
+        await until(lambda: relay.quic_connections_serving <= 1 + GOOD_VIEWERS, 4.0)
+        # Draining lasts three probe timeouts, which grow with the RTT a loaded host
+        # measures (a fresh-clone CI run needed more than 4 s), so that bound is looser.
+        await until(lambda: relay.quic_connections <= 1 + GOOD_VIEWERS, 15.0)
 
     outcome = scenario_test(cert, "garbage_streams", after=check)
     assert_common(outcome)

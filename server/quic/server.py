@@ -46,6 +46,7 @@ log = logging.getLogger(__name__)
 
 DEFAULT_PROTOCOLS = ("moq-lite-03",)
 SMALLEST_INITIAL_BYTES = 1200  # RFC 9000 14.1: aioquic opens no connection for less
+SERVING_STATES = (QuicConnectionState.FIRSTFLIGHT, QuicConnectionState.CONNECTED)
 
 
 @dataclass(frozen=True)
@@ -290,6 +291,16 @@ class WtServer:
     def connection_count(self) -> int:
         """QUIC connections the server still holds state for (draining ones included)."""
         return len(set(self._quic_server._protocols.values()))
+
+    def serving_count(self) -> int:
+        """QUIC connections not yet closing: the ones a deadline or limit has not ended.
+        A closed connection stays in `connection_count` for its draining period (three
+        probe timeouts, which grow with the RTT a loaded host measures)."""
+        return sum(
+            1
+            for protocol in set(self._quic_server._protocols.values())
+            if protocol._quic._state in SERVING_STATES
+        )
 
     def close(self) -> None:
         """Close every connection (CONNECTION_CLOSE sent) and stop listening.

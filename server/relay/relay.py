@@ -201,6 +201,11 @@ class Relay:
         """QUIC connections the server holds state for (refused and draining included)."""
         return 0 if self._endpoints is None else self._endpoints.wt.connection_count()
 
+    @property
+    def quic_connections_serving(self) -> int:
+        """QUIC connections not yet closing (refused and draining ones left out)."""
+        return 0 if self._endpoints is None else self._endpoints.wt.serving_count()
+
     async def start(self) -> None:
         routes = {"/metrics": self._metrics_route, "/stats": self._stats_route}
         self._endpoints = await serve(
