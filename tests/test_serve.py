@@ -17,6 +17,7 @@ larger drop or zero.
 from __future__ import annotations
 
 import asyncio
+import io
 import json
 import os
 import signal
@@ -27,6 +28,7 @@ import urllib.request
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 from server.serve.config import ConfigFileError, load_overrides, session_configs
@@ -38,6 +40,7 @@ from tests.serve_harness import ROOT, SMALL, Served, serve
 
 CLI = [sys.executable, "-m", "server.cli"]
 WINDOW_S = 8.0
+FRAME_TAP_PORT = 5270  # session i's frame tap: 5270 + i - 1
 TOLERANCE = 0.85
 
 
@@ -130,7 +133,9 @@ def _assert_kept_rate(before: dict[str, float], after: dict[str, float], others:
 
 @pytest.fixture(scope="module")
 def four() -> Any:
-    with serve(5230, "--sessions", "4", *SMALL, up_timeout_s=180) as served:
+    with serve(
+        5230, "--sessions", "4", "--frame-tap-port", str(FRAME_TAP_PORT), *SMALL, up_timeout_s=180
+    ) as served:
         yield served
 
 
@@ -157,6 +162,25 @@ def test_four_sessions_publish_and_are_listed(four: Served) -> None:
         ):
             with urllib.request.urlopen(f"http://127.0.0.1:{port + offset}/metrics") as r:
                 assert metric in r.read(), (row["broadcast"], offset)
+
+
+@pytest.mark.slow
+def test_each_session_taps_its_own_encoded_frames(four: Served) -> None:
+    """--frame-tap-port: session i answers its encoded frames' thumbnails on port + i - 1
+    (what deploy/smoke.sh compares the browser's canvas with)."""
+    for i in range(4):
+        with urllib.request.urlopen(f"http://127.0.0.1:{FRAME_TAP_PORT + i}/frames") as r:
+            summary = json.loads(r.read())
+        assert summary["count"] > 1 and summary["factor"] == 4, summary
+        first, last = (_tapped(FRAME_TAP_PORT + i, summary[end]) for end in ("first", "last"))
+        assert last.shape == (180 // 4, 320 // 4, 3) and last.dtype == np.float32
+        assert 5.0 < float(last.mean()) < 250.0  # a rendered scene, not black or blank
+        assert not np.array_equal(first, last)  # the camera moves: frames by id, not one
+
+
+def _tapped(port: int, frame_id: int) -> Any:
+    with urllib.request.urlopen(f"http://127.0.0.1:{port}/frames/{frame_id}") as r:
+        return np.load(io.BytesIO(r.read()), allow_pickle=False)
 
 
 @pytest.mark.slow

@@ -67,6 +67,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--web-root", type=Path, default=WEB_ROOT, help="built web client (client_web/dist)"
     )
     parser.add_argument("--duration", type=float, default=None, help="stop after SECONDS")
+    parser.add_argument(
+        "--frame-tap-port",
+        type=int,
+        default=0,
+        metavar="PORT",
+        help="debugging: session i serves thumbnails of its last 300 encoded frames by "
+        "frame id on http://HOST:PORT+i-1/frames/ID, for picture checks against what a "
+        "viewer shows (deploy/smoke.sh); costs ~2 ms a frame. Default 0: off",
+    )
 
 
 def _problem(args: argparse.Namespace) -> str | None:
@@ -81,6 +90,8 @@ def _problem(args: argparse.Namespace) -> str | None:
             f"the web client is not built ({args.web_root}/index.html missing): "
             "run ./dev up, or cd client_web && npm ci && npm run build"
         )
+    if not 0 <= args.frame_tap_port <= 65535 - 64:
+        return f"--frame-tap-port must be in [0, 65471], got {args.frame_tap_port}"
     if args.auth_key is not None and not args.auth_key.is_file():
         return f"--auth-key {args.auth_key} is not a file"
     return None
@@ -123,6 +134,8 @@ def _sessions(args: argparse.Namespace) -> list[ServedSession] | None:
             stream=session_stream,
             metrics_port=http_port + 1 + METRICS_PORTS_PER_SESSION * (i - 1) if http_port else 0,
             status_path=status_dir / f"session-{i}.status.json",
+            frame_tap_port=args.frame_tap_port + i - 1 if args.frame_tap_port else 0,
+            frame_tap_host=args.host or "::",  # where serve's HTTP side listens
         )
         for i, (config, session_stream) in enumerate(configs, start=1)
     ]

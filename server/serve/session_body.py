@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
+    from server.serve.frame_tap import FrameTapServer
     from server.serve.status_reporter import StatusReporter
     from server.session.pulse_monitor import PulseMonitor
     from server.session.runner import StreamingSession
@@ -44,6 +45,10 @@ class SessionPlan:
     metrics_port: int = 0
     cert_hash_hex: str | None = None  # pin the relay's certificate instead of fetching it
     duration_s: float | None = None  # stop after this long (None: until stop is set)
+    # Thumbnails of the encoded frames by id over HTTP (server/serve/frame_tap.py);
+    # 0 = off, the default: a debugging and testing aid.
+    frame_tap_port: int = 0
+    frame_tap_host: str = "127.0.0.1"
 
 
 @dataclass
@@ -68,7 +73,9 @@ async def run_game_session(
     / TimeoutError with a message for a person)."""
     from prometheus_client import CollectorRegistry, start_http_server
 
+    from server.bench.snapshots import FrameThumbs
     from server.frames.frame import Size
+    from server.serve.frame_tap import start_frame_tap
     from server.serve.status_reporter import StatusReporter
     from server.session.pulse_monitor import PulseMonitor
     from server.session.runner import StreamingSession, StreamSettings
@@ -81,6 +88,8 @@ async def run_game_session(
     stack = LocalStack(config, metrics_ports=ports, app_sound=stream.audio)
     session_task: asyncio.Task[None] | None = None
     sound: PulseMonitor | None = None
+    thumbs = FrameThumbs() if plan.frame_tap_port else None
+    tap: FrameTapServer | None = None
     try:
         await loop.run_in_executor(None, stack.start)
         await loop.run_in_executor(None, stack.wait_ready)
@@ -125,7 +134,10 @@ async def run_game_session(
             registry=registry,
             on_upscaler_set=stack.remember_upscaler,
             sound=sound,
+            frame_tap=thumbs,
         )
+        if thumbs is not None:
+            tap = start_frame_tap(thumbs, plan.frame_tap_host, plan.frame_tap_port)
         status = StatusReporter(session)
         session_task = asyncio.create_task(session.run(stop), name="session")
         try:
@@ -158,4 +170,6 @@ async def run_game_session(
                 await session_task
         if sound is not None:
             sound.close()
+        if tap is not None:
+            tap.close()
         stack.stop()

@@ -62,6 +62,8 @@ async def _run(spec: SessionSpec) -> int:
         token=spec.token,
         metrics_port=spec.metrics_port,
         cert_hash_hex=spec.cert_hash_hex,
+        frame_tap_port=spec.frame_tap_port,
+        frame_tap_host=spec.frame_tap_host,
     )
     running: list[LiveSession] = []
 

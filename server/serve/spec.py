@@ -20,4 +20,6 @@ class SessionSpec(BaseModel):
     token: str | None = None  # the publisher's JWT when the supervisor minted one
     cert_hash_hex: str | None = None
     metrics_port: int = 0
+    frame_tap_port: int = 0  # 0: off (server/serve/frame_tap.py)
+    frame_tap_host: str = "127.0.0.1"
     status_path: Path  # the session writes its state here (atomically, twice a second)

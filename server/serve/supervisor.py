@@ -45,6 +45,8 @@ class ServedSession:
     stream: StreamConfig
     metrics_port: int
     status_path: Path
+    frame_tap_port: int = 0  # 0: off
+    frame_tap_host: str = "127.0.0.1"
     proc: subprocess.Popen[bytes] | None = None
     name: str = ""  # the current start's session name (rings, sockets)
     restarts: int = 0
@@ -102,6 +104,8 @@ class Supervisor:
             cert_hash_hex=self.cert_hash_hex,
             metrics_port=s.metrics_port,
             status_path=s.status_path,
+            frame_tap_port=s.frame_tap_port,
+            frame_tap_host=s.frame_tap_host,
         )
         spec_path = self._dir / f"session-{s.index}.json"
         spec_path.write_text(spec.model_dump_json())
