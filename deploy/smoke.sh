@@ -37,8 +37,9 @@ export COMPOSE_PROJECT_NAME="upcast-smoke"
 export COMPOSE_BAKE=false
 SERVICES=(keys relay session)
 IMAGES=(upcast-relay:local upcast-session:local)
-# What the stack listens on (hostnet override, loopback): relay; serve; 2 sessions x 3.
-PORTS=(4443 4444 4445 4446 4447 4448 4449 4450)
+# What the stack listens on (hostnet override, loopback): relay; serve; 2 sessions x 3;
+# the 2 sessions' frame taps.
+PORTS=(4443 4444 4445 4446 4447 4448 4449 4450 4460 4461)
 HEALTH_TIMEOUT_S=240
 
 t_start=$SECONDS

@@ -9,11 +9,11 @@ a step:
    themselves cannot be pulled here;
 2. the player page the relay serves plays in the host's headless Chromium, and the
    time from ``up`` to its first presented frame;
-3. what its canvas shows is the stream's frame with the same id: the in-process tests
-   tap the session's frames before encoding (server/bench/snapshots.py), which a
-   container does not allow, so a second subscriber on the host (the load test's viewer) decodes the
-   same stream with FFmpeg and keeps thumbnails by frame id; canvas snapshots are
-   compared with them as the e2e tests do (``snapshot_psnr``);
+3. what its canvas shows is the frame the session encoded with the same id: the
+   session container serves thumbnails of its frames before encoding by frame id
+   (``upcast serve --frame-tap-port``, on in the host-network override), and canvas
+   snapshots are compared with them as the e2e tests do (``snapshot_psnr``), with a
+   control (the same snapshot against the frame a second earlier must be worse);
 4. killing the session container's upscaler worker: ``upcast serve`` restarts it
    (server/stack/local.py ``check_children``) and the page presents frames again.
 
@@ -23,49 +23,40 @@ Exit status 0 only if all of it held; the reason otherwise, on stderr.
 from __future__ import annotations
 
 import argparse
-import asyncio
-import base64
-import binascii
+import io
 import json
 import os
-import struct
 import subprocess
 import sys
-import threading
 import time
+import urllib.error
 import urllib.request
 from pathlib import Path
 from typing import Any
 
-import av
 import numpy as np
-import numpy.typing as npt
 import yaml  # type: ignore[import-untyped]
-from av.video.codeccontext import VideoCodecContext
 from playwright.sync_api import ConsoleMessage, sync_playwright
 from playwright.sync_api import TimeoutError as PlaywrightTimeout
 
 from server.bench.snapshots import (
-    FrameThumbs,
+    Thumb,
+    ThumbSource,
     decode_data_url,
     psnr,
     snapshot_psnr,
     thumbnail,
 )
-from server.loadtest.viewer import TIMING_TRACK, LoadViewer, ViewerConfig
-from server.media.cmaf_read import parse_fragment
-from server.moq.events import FrameReceived
 from server.ops.browser_paths import CHROMIUM, CHROMIUM_ARGS
-from server.quic.moq_link import MoqLink
 
 ROOT = Path(__file__).resolve().parents[1]
 PROMETHEUS = ROOT / "deploy" / "prometheus" / "prometheus.yml"
-MIN_PSNR_DB = 35.0  # issue 23's bar, here against the host's decode of the same frame
+MIN_PSNR_DB = 35.0  # issue 23's bar: the canvas against the server's frame with its id
 SNAPSHOTS = 8
 CONTROL_FRAMES = 30  # a second at the stack's 30 fps: another picture of the orbit
 MIN_MARGIN_DB = 6.0  # the e2e tests' margin between the same and another frame
 RESUMED_FRAMES = 30  # presented after the worker's restart: the stream is back
-PENDING = 120  # decoded pictures / timing records waiting for their other half
+DEFAULT_TAP_PORT = 4460  # session 1's frame tap (deploy/docker-compose.hostnet.yml)
 
 
 class SmokeFailure(Exception):
@@ -76,91 +67,32 @@ def say(message: str) -> None:
     print(f"smoke: {message}", flush=True)
 
 
-# -- the session's frames, decoded on the host -----------------------------------------
+# -- the session's frames, from its frame tap -------------------------------------------
 
 
-def avcc_of(init: bytes) -> bytes:
-    """The avcC record (SPS/PPS) of an init segment: the decoder's extradata. The
-    segment is upcast's own (server/media/cmaf.py): one video track, one avcC."""
-    at = init.find(b"avcC")
-    if at < 4:
-        raise ValueError("init segment without avcC")
-    (size,) = struct.unpack_from(">I", init, at - 4)
-    return init[at + 4 : at - 4 + size]
+class TappedFrames:
+    """The session's own thumbnails of the frames it encoded, by frame id, read from its
+    frame tap (``upcast serve --frame-tap-port``, server/serve/frame_tap.py): what the
+    in-process tests compare the canvas with (FrameThumbs), across the container."""
 
+    def __init__(self, url: str) -> None:
+        self.url = url.rstrip("/")
+        self._known: dict[int, Thumb] = {}
 
-class ReferenceViewer(LoadViewer):
-    """The load test's viewer (same subscriptions as the page), which also decodes
-    every video frame and files its thumbnail under the frame id the timing track
-    gives its pts."""
-
-    def __init__(self, config: ViewerConfig, thumbs: FrameThumbs) -> None:
-        super().__init__(0, config, window=(0.0, float("inf")))
-        self.thumbs = thumbs
-        self.decoded = 0
-        self._decoder: VideoCodecContext | None = None
-        self._pictures: dict[int, npt.NDArray[np.uint8]] = {}  # pts_us -> RGB
-        self._frame_ids: dict[int, int] = {}  # pts_us -> frame id
-
-    def _read_init(self, rendition: object) -> None:
-        super()._read_init(rendition)
+    def get(self, frame_id: int) -> Thumb | None:
+        if frame_id in self._known:
+            return self._known[frame_id]
         try:
-            init = base64.b64decode(rendition["container"]["init"])  # type: ignore[index]
-            extradata = avcc_of(init)
-        except (KeyError, TypeError, ValueError, binascii.Error, struct.error):
-            return
-        decoder = av.CodecContext.create("h264", "r")
-        assert isinstance(decoder, VideoCodecContext)
-        decoder.extradata = extradata
-        decoder.thread_count = 1  # frame threads would hold pictures back
-        self._decoder = decoder
-
-    def _on_frame(self, link: MoqLink, event: FrameReceived) -> None:
-        super()._on_frame(link, event)
-        track = self._tracks.get(event.subscription_id)
-        if track is not None and track == self._video_track:
-            self._decode(event.payload)
-        elif track == TIMING_TRACK:
-            try:
-                record = json.loads(event.payload)
-                pts, frame_id = int(record["pts_us"]), int(record["frame"])
-            except (ValueError, KeyError, TypeError):
-                return  # an audio record or a stranger: no video frame
-            self._frame_ids[pts] = frame_id
-            self._match(pts)
-
-    def _decode(self, fragment: bytes) -> None:
-        if self._decoder is None:
-            return
-        try:
-            info = parse_fragment(fragment, self._defaults)
-            pictures = self._decoder.decode(av.Packet(info.sample))
-        except (ValueError, struct.error, av.error.FFmpegError):
-            return  # before the first decodable picture: nothing to compare yet
-        pts = info.decode_time * 1_000_000 // self._timescale
-        for picture in pictures:
-            self._pictures[pts] = np.asarray(picture.to_ndarray(format="rgb24"), np.uint8)
-            self.decoded += 1
-            self._match(pts)
-
-    def _match(self, pts: int) -> None:
-        if pts in self._pictures and pts in self._frame_ids:
-            self.thumbs(self._frame_ids.pop(pts), self._pictures.pop(pts))
-        for waiting in (self._pictures, self._frame_ids):
-            while len(waiting) > PENDING:
-                waiting.pop(next(iter(waiting)))
-
-
-def start_reference(config: ViewerConfig, thumbs: FrameThumbs) -> ReferenceViewer:
-    """The viewer on its own event loop, in a daemon thread (playwright's sync API
-    owns the main thread)."""
-    viewer = ReferenceViewer(config, thumbs)
-    loop = asyncio.new_event_loop()
-    threading.Thread(target=loop.run_forever, daemon=True, name="reference").start()
-    asyncio.run_coroutine_threadsafe(viewer.connect(), loop).result(timeout=30)
-    if not viewer.stats.connected:
-        raise SmokeFailure(f"host viewer did not connect to the relay: {viewer.stats.error}")
-    return viewer
+            with urllib.request.urlopen(f"{self.url}/{frame_id}", timeout=5) as response:
+                thumb: Thumb = np.load(io.BytesIO(response.read()), allow_pickle=False)
+        except urllib.error.HTTPError as exc:
+            if exc.code == 404:
+                return None  # not encoded yet, or no longer kept
+            raise SmokeFailure(f"frame tap {self.url}/{frame_id}: {exc}") from None
+        except OSError as exc:
+            raise SmokeFailure(f"frame tap {self.url}/{frame_id}: {exc}") from None
+        self._known[frame_id] = thumb
+        return thumb
 
 
 # -- HTTP -------------------------------------------------------------------------------
@@ -216,18 +148,18 @@ def wait_presented(page: Any, count: int, timeout_s: float) -> None:
         ) from None
 
 
-def check_picture(page: Any, thumbs: FrameThumbs, when: str) -> None:
+def check_picture(page: Any, thumbs: ThumbSource, when: str) -> None:
     try:
         samples = snapshot_psnr(page, thumbs, count=SNAPSHOTS)
     except RuntimeError as exc:
         raise SmokeFailure(f"{when}: {exc}") from None
     shown = ", ".join(f"{db:.1f}" for db in samples)
-    say(f"picture {when}: PSNR against the host's decode of the frame with the same id: {shown} dB")
+    say(f"picture {when}: PSNR against the session's frame with the same id: {shown} dB")
     if min(samples) < MIN_PSNR_DB:
         raise SmokeFailure(f"{when}: a snapshot under {MIN_PSNR_DB:g} dB ({shown})")
 
 
-def check_ids_matter(page: Any, thumbs: FrameThumbs, attempts: int = 50) -> None:
+def check_ids_matter(page: Any, thumbs: ThumbSource, attempts: int = 50) -> None:
     """The control of the picture check: the same snapshot against the frame a second
     earlier must be clearly worse, or the check would pass on any frame of the stream
     (the default scene's camera orbits; the e2e tests measure 16-20 dB there)."""
@@ -297,9 +229,7 @@ def run(args: argparse.Namespace) -> None:
     if args.broadcast not in states:
         raise SmokeFailure(f"no session publishes {args.broadcast}")
 
-    thumbs = FrameThumbs()
-    config = ViewerConfig(relay_url, args.broadcast, cert_hash_hex=None, connect_timeout_s=10)
-    viewer = start_reference(config, thumbs)
+    thumbs = TappedFrames(f"http://127.0.0.1:{args.tap_port}/frames")
     with sync_playwright() as pw:
         browser = pw.chromium.launch(executable_path=str(CHROMIUM), args=list(CHROMIUM_ARGS))
         try:
@@ -318,12 +248,10 @@ def run(args: argparse.Namespace) -> None:
             wait_presented(page, 60, args.timeout)
             check_picture(page, thumbs, "playing")
             check_ids_matter(page, thumbs)
-            say(f"host viewer decoded {viewer.decoded} frames ({viewer.stats.bad_fragments} bad)")
             kill_worker(serve_url, args.broadcast, page, args.timeout)
             check_picture(page, thumbs, "after the worker's restart")
         finally:
             browser.close()
-            viewer.close()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -332,6 +260,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--broadcast", default="game-1")
     parser.add_argument("--relay-port", type=int, default=4443)
     parser.add_argument("--serve-port", type=int, default=4444)
+    parser.add_argument(
+        "--tap-port", type=int, default=DEFAULT_TAP_PORT, help="the broadcast's frame tap"
+    )
     parser.add_argument("--timeout", type=float, default=90.0, help="seconds a step may take")
     args = parser.parse_args(argv)
     if "COMPOSE_FILE" not in os.environ:

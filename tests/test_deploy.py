@@ -515,9 +515,11 @@ def test_the_host_network_override_runs_the_base_commands_on_loopback() -> None:
     want = compose_argv("relay")
     want[want.index("--host") + 1] = "127.0.0.1"
     assert relay == want
-    # The session: the base command plus --host (its HTTP side and metrics ports).
+    # The session: the base command plus --host (its HTTP side and metrics ports) and
+    # the frame tap the smoke test's picture check reads.
     session = compose_argv("session", HOSTNET_OVERRIDE)
-    assert session == [*compose_argv("session"), "--host", "127.0.0.1"]
+    tap = ["--frame-tap-port", flag(session, "--frame-tap-port")]
+    assert session == [*compose_argv("session"), "--host", "127.0.0.1", *tap]
     relay_host = urllib.parse.urlsplit(flag(session, "--relay")).hostname
     assert merged["session"]["extra_hosts"] == [f"{relay_host}:127.0.0.1"]
 
@@ -527,17 +529,24 @@ def test_the_smoke_test_knows_the_stack_it_runs() -> None:
     files = re.search(r'COMPOSE_FILE="([^"]+)"', script)
     assert files is not None
     assert [ROOT / f for f in files[1].split(":")] == [COMPOSE, OFFLINE_OVERRIDE, HOSTNET_OVERRIDE]
-    # The ports it checks are free: the relay's, serve's and every session's block.
+    # The ports it checks are free: the relay's, serve's, every session's block and
+    # every session's frame tap.
     ports = re.search(r"PORTS=\(([\d ]+)\)", script)
     assert ports is not None
     session = compose_argv("session", HOSTNET_OVERRIDE)
     http_port = int(flag(session, "--http-port"))
-    blocks = int(flag(session, "--sessions")) * METRICS_PORTS_PER_SESSION
+    count = int(flag(session, "--sessions"))
+    tap_port = int(flag(session, "--frame-tap-port"))
     expected = [
         int(flag(compose_argv("relay"), "--port")),
-        *range(http_port, http_port + 1 + blocks),
+        *range(http_port, http_port + 1 + count * METRICS_PORTS_PER_SESSION),
+        *range(tap_port, tap_port + count),
     ]
     assert [int(p) for p in ports[1].split()] == expected
+    # The picture check reads session 1's tap, which serves game-1.
+    check = (ROOT / "deploy" / "smoke_check.py").read_text()
+    assert f"DEFAULT_TAP_PORT = {tap_port} " in check
+    assert 'parser.add_argument("--broadcast", default="game-1")' in check
     images = re.search(r"IMAGES=\(([^)]+)\)", script)
     assert images is not None
     assert set(images[1].split()) == {

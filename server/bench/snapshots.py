@@ -9,7 +9,7 @@ import io
 import threading
 import time
 from collections import OrderedDict
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -82,7 +82,14 @@ class FrameThumbs:
             return sum(1 for t in self.times if t0 <= t < t1)
 
 
-def snapshot_psnr(page: Any, thumbs: FrameThumbs, count: int = 6, gap_ms: int = 150) -> list[float]:
+class ThumbSource(Protocol):
+    """Where the session's frames are looked up by id: a FrameThumbs in the same
+    process, or a session's frame tap over HTTP (deploy/smoke_check.py)."""
+
+    def get(self, frame_id: int) -> Thumb | None: ...
+
+
+def snapshot_psnr(page: Any, thumbs: ThumbSource, count: int = 6, gap_ms: int = 150) -> list[float]:
     """PSNR of ``count`` canvas snapshots (``window.upcast.snapshot()``) against the
     session's frame with the same id; snapshots whose frame is unknown are retried."""
     out: list[float] = []
