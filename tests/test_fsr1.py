@@ -338,3 +338,37 @@ def test_band_size_does_not_change_the_result(display: Size) -> None:
         padded = F.pad(got[None], (1, 1, 1, 1))[0]
         sharpened = Rcas(band_pixels=band)(padded.clone())
         assert torch.equal(sharpened, Rcas(band_pixels=1 << 30)(padded.clone()))
+
+
+@pytest.mark.parametrize("offset", [(0.37, 0.0), (-0.25, 0.0), (0.5, 0.0)])
+def test_easu_sample_offset_puts_the_taps_where_the_samples_were_taken(
+    offset: tuple[float, float],
+) -> None:
+    """A smooth edge sampled at i + 0.5 + offset (a jittered render): with the offset
+    EASU reconstructs it where it is; without it, the edge moves by the offset."""
+    w, h, scale = 32, 8, 2
+
+    def edge(x: np.ndarray) -> np.ndarray:
+        return 1.0 / (1.0 + np.exp(-(x - 15.3) / 1.5))
+
+    def sampled(at: float) -> torch.Tensor:
+        row = edge(np.arange(w) + 0.5 + at).astype(np.float32)
+        return torch.from_numpy(np.tile(row, (3, h, 1)))
+
+    out_hw = (h * scale, w * scale)
+    truth = edge((np.arange(w * scale) + 0.5) / scale)  # at the display pixel centres
+
+    def error(image: torch.Tensor, at: tuple[float, float]) -> float:
+        got = Easu(dtype=torch.float32)(image, out_hw, sample_offset=at)[0, h].numpy()
+        return float(np.abs(got - truth).max())
+
+    unjittered = error(sampled(0.0), (0.0, 0.0))  # EASU's own error on this edge
+    placed = error(sampled(offset[0]), offset)
+    ignored = error(sampled(offset[0]), (0.0, 0.0))
+    assert placed < 1.5 * unjittered + 1e-3, (placed, unjittered)
+    assert ignored > 3 * placed, (ignored, placed)
+
+
+def test_easu_refuses_an_offset_past_half_a_pixel() -> None:
+    with pytest.raises(ValueError, match="sample_offset"):
+        Easu()(torch.zeros(3, 4, 4), (8, 8), sample_offset=(0.0, -0.6))

@@ -76,9 +76,10 @@ def band_rows(band_pixels: int | None, width: int) -> int:
     return max(1, band_pixels // width)
 
 
-def axis_map(n_in: int, n_out: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Input index of 'f' (may be -1) and the phase in [0, 1) of each output pixel."""
-    src = (torch.arange(n_out, dtype=torch.float64) + 0.5) * (n_in / n_out) - 0.5
+def axis_map(n_in: int, n_out: int, shift: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """Input index of 'f' (may be -1) and the phase in [0, 1) of each output pixel; input
+    sample i lies at i + 0.5 + ``shift`` (|shift| <= 0.5: a jittered render)."""
+    src = (torch.arange(n_out, dtype=torch.float64) + 0.5) * (n_in / n_out) - 0.5 - shift
     base = torch.floor(src)
     return base.to(torch.long), src - base
 
@@ -222,11 +223,17 @@ class _NearestSampler(_Sampler):
 class _GatherSampler(_Sampler):
     """Any scale: tap columns gathered once at input height, rows gathered per tap."""
 
-    def __init__(self, buf: Buffers, in_hw: tuple[int, int], out_hw: tuple[int, int]) -> None:
+    def __init__(
+        self,
+        buf: Buffers,
+        in_hw: tuple[int, int],
+        out_hw: tuple[int, int],
+        shift: tuple[float, float] = (0.0, 0.0),
+    ) -> None:
         super().__init__(buf, out_hw)
         (h, w), (ho, wo) = in_hw, out_hw
-        bx, fx = axis_map(w, wo)
-        by, fy = axis_map(h, ho)
+        bx, fx = axis_map(w, wo, shift[0])
+        by, fy = axis_map(h, ho, shift[1])
         dev = buf.device
         self.phase_x = fx.to(buf.dtype).to(dev)
         self.phase_y = fy.to(buf.dtype).to(dev).unsqueeze(1)
@@ -304,28 +311,40 @@ class Easu:
         self._buf = Buffers(torch.device("cpu"), torch.float32)
         self._sampler: _Sampler | None = None
 
-    def _setup(self, image: torch.Tensor, out_hw: tuple[int, int]) -> _Sampler:
+    def _setup(
+        self, image: torch.Tensor, out_hw: tuple[int, int], shift: tuple[float, float]
+    ) -> _Sampler:
         _, h, w = image.shape
         ho, wo = out_hw
         dtype = self.dtype or (image.dtype if image.is_floating_point() else torch.float32)
-        key = (h, w, ho, wo, image.device, dtype)
+        key = (h, w, ho, wo, image.device, dtype, shift)
         if self._sampler is not None and self._key == key:
             return self._sampler
         self._key = key
         self._buf = buf = Buffers(image.device, dtype)
         kx, ky = wo // w, ho // h
         integer = kx * w == wo and ky * h == ho
-        if integer:
+        if integer and shift == (0.0, 0.0):
             self._sampler = _NearestSampler(buf, out_hw, kx, ky)
         else:
-            self._sampler = _GatherSampler(buf, (h, w), out_hw)
+            self._sampler = _GatherSampler(buf, (h, w), out_hw, shift)
         self._minus_9_4 = torch.tensor(-2.25, dtype=dtype, device=image.device)
         return self._sampler
 
     def __call__(
-        self, image: torch.Tensor, out_hw: tuple[int, int], out: torch.Tensor | None = None
+        self,
+        image: torch.Tensor,
+        out_hw: tuple[int, int],
+        out: torch.Tensor | None = None,
+        *,
+        sample_offset: tuple[float, float] = (0.0, 0.0),
     ) -> torch.Tensor:
-        sampler = self._setup(image, out_hw)
+        """``sample_offset``: (x, y) where the input's samples lie from their pixel centres,
+        in input pixels, each within [-0.5, 0.5] (a jittered render passes its jitter;
+        the taps then sit where the samples were taken)."""
+        if not all(-0.5 <= o <= 0.5 for o in sample_offset):
+            raise ValueError(f"sample_offset must be within [-0.5, 0.5], got {sample_offset}")
+        sampler = self._setup(image, out_hw, (float(sample_offset[0]), float(sample_offset[1])))
         buf = self._buf
         _, h, w = image.shape
         ho, wo = out_hw

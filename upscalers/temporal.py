@@ -26,15 +26,16 @@ Per frame:
    rendered and blended with ``alpha = w / (trust * W + w)`` where W is the
    accumulated weight (capped, so alpha never drops below about 1 / W_max; the
    cap is far lower on moving pixels, whose history every resampling blurs).
-   After a reset the history starts as a Lanczos-2 reconstruction of the frame's
-   own samples at their jittered positions, worth ``reset_weight`` in that
-   frame's blend and ``reset_carry`` after it: the frames after a cut are about as
-   good as a spatial upscaler's.
+   After a reset the history starts as FSR 1's EASU of the frame's own samples,
+   its taps at their jittered positions, worth ``reset_weight`` in that frame's
+   blend and ``reset_carry`` after it: the frames after a cut are about as good as
+   a spatial upscaler's.
 3. Output: uint8 sRGB (3, H, W), what ring U holds; conversion from YCoCg, scale,
    rounding and clamp are one matrix product and a clamp. Then RCAS sharpens it
    (the history itself stays unsharpened, as in FSR 2) and each display pixel is
    clamped to the 3x3 range of the frame's colour around its render pixel: detail
-   without a halo past the input's local range.
+   without a halo past the input's local range. Not on a reset frame, which is
+   mostly EASU's start and sharp already.
 
 Colour space: history is kept in YCoCg of the *sRGB-encoded* values. The
 input and the output are sRGB, so no transfer-function work happens at display
@@ -71,6 +72,7 @@ import torch.nn.functional as F
 from server.frames.frame import FrameFlags, RenderFrame, Size
 from upscalers import temporal_ops as ops
 from upscalers.base import BACKENDS, Backend, Upscaler, numba_can_run
+from upscalers.fsr1_easu import Easu
 from upscalers.fsr1_rcas import Rcas
 from upscalers.kernel_readiness import kernels_ready
 from upscalers.temporal_params import TemporalParams
@@ -147,6 +149,7 @@ class TemporalUpscaler(Upscaler):
         # The numba path's state and buffers for the current geometry (None: torch path).
         self._host: HostTemporal | None = None
         self._rcas: Rcas | None = None  # the output's sharpening (torch path)
+        self._easu: Easu | None = None  # a reset's spatial start (torch path)
 
     def reset(self) -> None:
         self._history = None
@@ -195,9 +198,10 @@ class TemporalUpscaler(Upscaler):
         if self._base_grid is None:
             self._base_grid = ops.pixel_grid(display, scale, dev, dt)
         history = self._history
+        reset = history is None
         if history is None:
             # A reset: the history starts as the frame's own spatial reconstruction.
-            spatial = ops.spatial_reconstruction(raw, display, jit)
+            spatial = ops.spatial_reconstruction(raw, display, jit, self._reset_easu())
             if scale > 1:
                 prev = ops.to_planar(spatial, scale)
             else:
@@ -224,7 +228,16 @@ class TemporalUpscaler(Upscaler):
         else:
             history = new.reshape(1, 3, big_h, big_w).to(self.storage_dtype)
         self._history = history
-        return self._sharpen_output(ops.ycocg_to_rgb8(history[0]), frame)
+        rgb8 = ops.ycocg_to_rgb8(history[0])
+        # A reset frame is mostly EASU's start, sharp already: RCAS on top lost 0.3 dB
+        # there on photographs. Accumulated frames are softer (each sample is a box over
+        # its render pixel) and gain from it.
+        return rgb8 if reset else self._sharpen_output(rgb8, frame)
+
+    def _reset_easu(self) -> Easu:
+        if self._easu is None:
+            self._easu = Easu(dtype=torch.float32)
+        return self._easu
 
     def _sharpen_output(self, rgb8: torch.Tensor, frame: RenderFrame) -> torch.Tensor:
         """RCAS of the (3, H, W) uint8 output (``TemporalParams.output_sharpness``),

@@ -28,6 +28,7 @@ from server.frames.frame import RenderFrame, Size
 from upscalers import fsr1_cpu_kernels as fsr1_kernels
 from upscalers import temporal_cpu_kernels as kernels
 from upscalers import temporal_ops as ops
+from upscalers.fsr1_easu import Easu
 
 if TYPE_CHECKING:
     from upscalers.temporal_params import TemporalParams
@@ -129,6 +130,7 @@ class HostTemporal:
         self._has_history = False
         self._prev_jitter = (0.0, 0.0)
         self._phases: dict[tuple[float, float], _Phase] = {}
+        self._easu = Easu(dtype=torch.float32)  # a reset's spatial start
         self._outputs: list[npt.NDArray[np.uint8]] = []
         self._to_ycocg = _f32(torch.tensor(ops._RGB_TO_YCOCG).mul_(1.0 / 255.0))
         self._step = (np.float32(2.0 / w), np.float32(2.0 / h))  # as _fetch_history's ``step``
@@ -174,11 +176,12 @@ class HostTemporal:
             p = self.params  # as _store_weight
             stored = np.float32(stored + (p.reset_carry - p.reset_weight))
         moving = self._render_stage(frame, jit, nf, stored)
-        if not self._has_history:
+        reset = not self._has_history
+        if reset:
             # A reset: the history starts as the frame's own spatial reconstruction (the
             # torch path's helper; one frame in many, so its speed matters little).
             raw = torch.from_numpy(self._buf.raw[:, :, 1:-1])
-            spatial = ops.spatial_reconstruction(raw, self.display, jit)
+            spatial = ops.spatial_reconstruction(raw, self.display, jit, self._easu)
             np.copyto(self._history, spatial.numpy())
             mode = kernels.PREV_IN_PLACE
         elif moving == 0:
@@ -188,7 +191,7 @@ class HostTemporal:
         out = self._output()
         self._display_stage(phase, mode, out)
         stops = self.params.output_sharpness
-        if stops is not None:
+        if stops is not None and not reset:  # as TemporalUpscaler.upscale
             # TemporalUpscaler._sharpen_output: the same RCAS kernel as FSR 1's.
             kernels.rgb8_to_padded(out, self._rcas_in)
             big_w, big_h = self.display

@@ -38,10 +38,10 @@ class TemporalParams:
     # the gain scales the correction (1 = Catmull-Rom).
     history_catmull_rom: bool = True
     history_sharpen_gain: float = 1.0
-    # A reset (first frame, scene cut) starts the history from a Lanczos-2 reconstruction
-    # of the frame's own samples at their jittered positions, worth this much accumulated
-    # sample weight in that frame's blend: the first frames after a cut are as sharp as a
-    # spatial upscaler instead of the sparse jittered samples alone.
+    # A reset (first frame, scene cut) starts the history from EASU (FSR 1) of the frame's
+    # own samples at their jittered positions, worth this much accumulated sample weight
+    # in that frame's blend: the first frames after a cut are as sharp as a spatial
+    # upscaler instead of the sparse jittered samples alone.
     reset_weight: float = 3.0
     # What that start leaves in the accumulated weight for the next frames: with none,
     # the second frame after a cut over soft photographs fell 1 dB below EASU+RCAS; kept
@@ -52,4 +52,5 @@ class TemporalParams:
     # accumulation: the history stays unsharpened, and RCAS never leaves the range of a
     # pixel's 4 neighbours, so no halo. 0.5 stops: on the game's scenes (2x, 640x360)
     # +0.04 to +0.6 dB against the presharpened samples it replaces; 1 and 2 stops less.
+    # Not on a reset frame, mostly EASU's start and sharp already.
     output_sharpness: float | None = 0.5
