@@ -27,15 +27,12 @@ def lanczos(x: torch.Tensor, a: int = LOBES) -> torch.Tensor:
     return torch.sinc(x) * torch.sinc(x / a) * inside
 
 
-def axis_weights(n_in: int, n_out: int, offset: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
-    """(n_out, K) clamped input indices and normalized weights along one axis.
-
-    ``offset``: where the input samples were taken, in input pixels from their centres
-    (a jittered render: sample i sits at i + 0.5 + offset)."""
+def axis_weights(n_in: int, n_out: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(n_out, K) clamped input indices and normalized weights along one axis."""
     scale = n_in / n_out
     stretch = max(scale, 1.0)
     support = LOBES * stretch
-    centre = (torch.arange(n_out, dtype=torch.float64) + 0.5) * scale - 0.5 - offset
+    centre = (torch.arange(n_out, dtype=torch.float64) + 0.5) * scale - 0.5
     first = torch.floor(centre - support) + 1
     taps = math.ceil(2 * support)  # integers inside the open interval (centre -+ support)
     pos = first.unsqueeze(1) + torch.arange(taps, dtype=torch.float64)
@@ -85,11 +82,10 @@ def plan_axes(
     out_hw: tuple[int, int],
     device: torch.device,
     dtype: torch.dtype,
-    offset: tuple[float, float] = (0.0, 0.0),
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The tap tables ``apply_axes`` takes; ``offset`` (x, y) as in ``axis_weights``."""
-    ix, wx = axis_weights(in_hw[1], out_hw[1], offset[0])
-    iy, wy = axis_weights(in_hw[0], out_hw[0], offset[1])
+    """The tap tables ``apply_axes`` takes."""
+    ix, wx = axis_weights(in_hw[1], out_hw[1])
+    iy, wy = axis_weights(in_hw[0], out_hw[0])
     return (
         ix.t().contiguous().to(device),
         wx.t().to(dtype).unsqueeze(2).contiguous().to(device),  # (K, W_out, 1)
