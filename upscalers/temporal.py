@@ -182,7 +182,7 @@ class TemporalUpscaler(Upscaler):
             return self._upscale_host(self._host, frame, jit)
 
         # ---- render size: colour, box, dilated motion, trust, accumulated weight ----
-        raw, ycocg, lo, hi, prev_weight, mv = self._render_stage(frame, jit, ops.near_far(frame))
+        ycocg, lo, hi, prev_weight, mv = self._render_stage(frame, jit, ops.near_far(frame))
         self._prev_jitter = jit
 
         # ---- display size ----
@@ -201,7 +201,8 @@ class TemporalUpscaler(Upscaler):
         reset = history is None
         if history is None:
             # A reset: the history starts as the frame's own spatial reconstruction.
-            spatial = ops.spatial_reconstruction(raw, display, jit, self._reset_easu())
+            color = ops.as_tensor(frame.color, dev)
+            spatial = ops.spatial_reconstruction(color, display, jit, self._reset_easu())
             if scale > 1:
                 prev = ops.to_planar(spatial, scale)
             else:
@@ -296,9 +297,9 @@ class TemporalUpscaler(Upscaler):
     def _render_stage(
         self, frame: RenderFrame, jit: tuple[float, float], nf: tuple[float, float] | None
     ) -> tuple[torch.Tensor, ...]:
-        """YCoCg samples as rendered and presharpened, the 3x3 box of the former, the
-        trusted accumulated weight and the dilated motion; keeps this frame's 2x2 max
-        depth for the next one."""
+        """YCoCg samples (presharpened if asked), the 3x3 box of the samples as rendered,
+        the trusted accumulated weight and the dilated motion; keeps this frame's 2x2
+        max depth for the next one."""
         p = self.params
         dev = ops.input_device(frame, self.device)
         dt = self.dtype
@@ -326,7 +327,7 @@ class TemporalUpscaler(Upscaler):
         lin_d, mv = ops.closest_3x3(lin, motion.permute(2, 0, 1))
         prev_weight = self._reproject_weight(lin_d, mv, mask_d, jit)
         self._prev_far = ops.max_2x2(lin)
-        return raw, ycocg, lo, hi, prev_weight, mv
+        return ycocg, lo, hi, prev_weight, mv
 
     def _fetch_history(
         self, history: torch.Tensor, motion: torch.Tensor, layout: torch.Size, w: int, h: int

@@ -180,8 +180,8 @@ class HostTemporal:
         if reset:
             # A reset: the history starts as the frame's own spatial reconstruction (the
             # torch path's helper; one frame in many, so its speed matters little).
-            raw = torch.from_numpy(self._buf.raw[:, :, 1:-1])
-            spatial = ops.spatial_reconstruction(raw, self.display, jit, self._easu)
+            rgb8 = ops.as_tensor(frame.color, _CPU)
+            spatial = ops.spatial_reconstruction(rgb8, self.display, jit, self._easu)
             np.copyto(self._history, spatial.numpy())
             mode = kernels.PREV_IN_PLACE
         elif moving == 0:

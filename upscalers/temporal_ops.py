@@ -265,18 +265,16 @@ def ycocg_to_rgb8(ycocg: torch.Tensor) -> torch.Tensor:
 
 
 def spatial_reconstruction(
-    ycocg: torch.Tensor, display: Size, jit: tuple[float, float], easu: Easu
+    color: torch.Tensor, display: Size, jit: tuple[float, float], easu: Easu
 ) -> torch.Tensor:
-    """(3, h, w) YCoCg samples taken at (i + 0.5 + jitter) -> (3, H, W) YCoCg: FSR 1's
-    EASU of their colour, its taps where the samples were taken (``sample_offset``).
+    """(h, w, 3) uint8 sRGB samples taken at (i + 0.5 + jitter) -> (3, H, W) YCoCg (of
+    values in [0, 1], as ``rgb8_to_ycocg``): FSR 1's EASU of them, its taps where the
+    samples were taken (``sample_offset``).
 
     What a reset starts the history from. Against the Lanczos-2 it replaces, on the
     training photographs at 2x: the three frames after a cut +0.3 dB each. EASU's own
     de-ringing clamp keeps it inside each quad's range."""
-    _, h, w = ycocg.shape
-    dev, dt = ycocg.device, ycocg.dtype
-    to_rgb = torch.tensor(_YCOCG_TO_RGB, device=dev, dtype=dt)
-    rgb = torch.mm(to_rgb, ycocg.reshape(3, -1)).clamp_(0.0, 1.0).view(3, h, w)
+    rgb = color.permute(2, 0, 1).to(torch.float32).mul_(1.0 / 255.0)
     up = easu(rgb, (display.height, display.width), sample_offset=jit)
-    to_ycocg = torch.tensor(_RGB_TO_YCOCG, device=dev, dtype=dt)
+    to_ycocg = torch.tensor(_RGB_TO_YCOCG, device=up.device, dtype=up.dtype)
     return torch.mm(to_ycocg, up.reshape(3, -1)).view(3, display.height, display.width)

@@ -36,6 +36,10 @@ class _Server(ThreadingHTTPServer):
     thumbs: FrameThumbs
 
 
+class _Server6(_Server):
+    address_family = socket.AF_INET6
+
+
 class _Handler(BaseHTTPRequestHandler):
     server: _Server
 
@@ -81,8 +85,7 @@ class FrameTapServer:
     """The tap's HTTP side, on its own daemon threads; ``close`` stops it."""
 
     def __init__(self, thumbs: FrameThumbs, host: str, port: int) -> None:
-        family = socket.AF_INET6 if ":" in host else socket.AF_INET
-        server_class = type("_FamilyServer", (_Server,), {"address_family": family})
+        server_class = _Server6 if ":" in host else _Server
         self._server: _Server = server_class((host, port), _Handler)
         self._server.thumbs = thumbs
         self.port: int = self._server.server_address[1]
