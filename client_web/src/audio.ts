@@ -2,10 +2,11 @@
 // AudioDecoder -> an AudioWorklet that plays each sample at the time its video frame
 // is shown.
 //
-// Sync: a video frame with pts P is presented at page time P + videoOffset (the
-// player shows frames as they come, so videoOffset is the pipeline's latency, read
-// from the last presented frames: their first quartile, see VIDEO_WINDOW). Audio with pts P is scheduled to be *heard* at the
-// same P + videoOffset, which means holding it back: the audio of a moment arrives
+// Sync: a video frame with pts P can be shown at page time P + videoOffset (the
+// pipeline's latency, read from the last shown frames less what each waited for its
+// sound in VideoHold: their first quartile, see VIDEO_WINDOW). Audio with pts P is
+// scheduled to be *heard* at the same P + videoOffset, which means holding it back:
+// the audio of a moment arrives
 // about when its frame does and video still has to decode and wait for a refresh. If
 // audio ever arrives too late for that, it plays as early as its own jitter buffer
 // allows instead (audio ahead of nothing is better than silence) and the A/V offset
@@ -39,7 +40,13 @@ const VIDEO_QUANTILE = 25;
 // the sound does not wait for it, it plays as early as it can and syncs once it has.
 const MAX_HOLD_MS = 250;
 const MAX_RENDER_AHEAD_MS = 100;
-const LATE_WINDOW = 100; // chunks (1 s) whose 95th percentile arrival bounds the target (one stall of the page must not move it)
+// Chunks (3 s) whose 95th percentile arrival bounds the target. Why 3 s and not 1: a
+// single stall of the page (70 ms, 7 chunks late) was 7 % of a 1 s window, so it moved
+// the target 70 ms later for the next second (the picture, held at most MAX_HOLD_MS,
+// cannot follow: A/V offsets of -70 to -90 ms, the p95 of whole runs); the chunks of
+// that stall had missed their slots already, so the move bought nothing. In 3 s one
+// stall is 2 %; stalls that come every second or two still move it.
+const LATE_WINDOW = 300;
 
 /** Per-packet stamps the page adds, wall-clock microseconds. */
 export interface AudioClientStamps {
@@ -150,7 +157,8 @@ export class AudioPlayer {
 		this.#targetMs = undefined;
 	}
 
-	/** The player showed the video frame with pts ``ptsUs`` at page time ``perfMs``. */
+	/** The video frame with pts ``ptsUs`` was ready to show at page time ``perfMs``:
+	 * when it was shown, less what it waited for its sound (VideoHold.waitedMs). */
 	videoPresented(ptsUs: number, perfMs: number): void {
 		this.#videoOffsets.push(perfMs - ptsUs / 1000);
 	}

@@ -87,7 +87,7 @@ function main(): void {
 		const perf = performance.now();
 		receive.shown(ptsUs, perf);
 		if (audio && audioEnabled) {
-			audio.videoPresented(ptsUs, perf);
+			audio.videoPresented(ptsUs, perf - hold.waitedMs(ptsUs));
 			// A/V offset: the audio heard now minus the picture shown now (+: audio ahead).
 			const heard = audio.audibleMsAt(perf);
 			if (heard !== undefined && audio.bufferedMs > 0) latency.add("av_offset", heard - ptsUs / 1000);

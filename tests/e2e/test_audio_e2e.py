@@ -112,10 +112,14 @@ def test_player_plays_the_tone_and_measures_sync(stack: LiveStack, browser: Any)
     assert summary["framesPresented"] > before + 20  # video went on (2 loaded cores)
     lat = summary["latency"]
     assert lat["audio_total"]["n"] > 50 and lat["av_offset"]["n"] > 20
-    # The issue's target: within +-40 ms. The median holds it; the p95 does not on 2
-    # loaded cores (each video frame is shown as soon as it is decoded, so the picture's
-    # own latency jitters by tens of ms around the median the sound follows).
+    summary["abs_av_offset"]["p90"] = float(np.percentile(offsets, 90))
+    # The target: sound and picture within +-40 ms. On this quiet machine the p95 holds
+    # it (8-24 ms in 7 runs); asserted at the p90, as with one more core busy beside the
+    # stack the sound's arrivals spread enough for a p95 of 54 ms in 1 run of 3. (With a
+    # 1 s arrival window and pictures held at most 60 ms, one stall of the page moved
+    # the sound 70 ms later for a second: p95 25-139 ms.)
     assert summary["abs_av_offset"]["p50"] <= 40, summary["abs_av_offset"]
+    assert summary["abs_av_offset"]["p90"] <= 40, summary["abs_av_offset"]
     # Mute: the output goes quiet, video does not care.
     page.click("#audio-mute")
     time.sleep(0.3)
@@ -123,6 +127,43 @@ def test_player_plays_the_tone_and_measures_sync(stack: LiveStack, browser: Any)
     assert max(db for _, db in muted["reads"]) < min(tone) - 30, (muted, found)
     page.close()
     stack.check()
+
+
+# Block the page's main thread (where video and sound are decoded) for ``ms``.
+STALL = "(ms) => { const t = performance.now(); while (performance.now() - t < ms) {} }"
+
+
+def test_a_stall_of_the_page_does_not_pull_sound_and_picture_apart(
+    stack: LiveStack, browser: Any
+) -> None:
+    """One 80 ms stall of the page (where video and sound are decoded): sound and
+    picture stay together over the next two seconds; only the frames shown late right
+    after the stall may be off. (With a 1 s arrival window and pictures held at most
+    60 ms, a stall moved the sound about 70 ms later for a second, which the picture
+    could not follow: offsets of -69 to -85 ms.)"""
+    page = open_player(browser, stack.player_url(overlay="0"), frames=5)
+    page.click("#status")  # any gesture starts the sound (not the mute button: see the join test)
+    page.wait_for_function(
+        "() => window.upcast.stats().audio.running && window.upcast.stats().audio.decoded > 20",
+        timeout=20_000,
+    )
+    page.wait_for_timeout(3000)  # settle: windows full, the target in place
+    assert not stats(page)["audio"]["muted"]
+    target_before = stats(page)["audio"]["sync"]["targetMs"]
+    start = len(stats(page)["latency"]["av_offset"]["samples"])
+    page.evaluate(STALL, 80)
+    page.wait_for_timeout(2000)
+    after = stats(page)
+    offsets = np.abs(np.array(after["latency"]["av_offset"]["samples"][start:]))
+    target_after = after["audio"]["sync"]["targetMs"]
+    print(
+        f"stall: target {target_before:.1f} -> {target_after:.1f} ms, "
+        f"|A/V| p50 {np.percentile(offsets, 50):.1f} p90 {np.percentile(offsets, 90):.1f} "
+        f"max {offsets.max():.1f} ms over {offsets.size} frames"
+    )
+    assert offsets.size > 30
+    assert np.percentile(offsets, 90) <= 40
+    page.close()
 
 
 # Milliseconds from now until the player's output carries the tone (polled every 20 ms).
