@@ -23,7 +23,7 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
-from server.bench.latency import LiveStack, StageCollector, percentiles
+from server.bench.latency import STAGES, LiveStack, StageCollector, percentiles
 from server.bench.network_link import EmulatorProcess
 from server.bench.network_page import (
     DRAW_WATCH,
@@ -206,6 +206,8 @@ def measure(run: NetworkRun, browser: Any) -> dict[str, Any]:
         "delivered_ratio": round(presented / published, 4) if published else None,
         "freezes": shown.summary(),
         "glass_to_glass": g2g,
+        # Where the time goes (each stage's own p50 / p95; they do not add up at the p95).
+        "stages": {stage: percentiles(collector.samples[stage]) for stage in STAGES},
         "median_ms": g2g["p50_ms"],
         "p95_ms": g2g["p95_ms"],
         "received_psnr_db": quality.summary(),
