@@ -324,10 +324,23 @@ def test_dataset_mip_bias_is_part_of_its_key_and_of_its_renders() -> None:
     assert not np.array_equal(a.color, b.color)  # finer mips in the renders only
 
 
+def test_dataset_rendered_by_workers_is_the_same_data() -> None:
+    spec = DatasetSpec(sequences=3, frames=3, render_size="48x32", scenes=("static", "dolly"))
+    one, two = generate(spec, progress=False), generate(spec, progress=False, workers=2)
+    for name in one.__dataclass_fields__:
+        assert np.array_equal(getattr(one, name), getattr(two, name)), name
+    with pytest.raises(ValueError, match="workers"):
+        generate(spec, progress=False, workers=0)
+
+
+NO_CUDA = [] if torch.cuda.is_available() else [["--model", "unet", "--device", "cuda"]]
+
+
 @pytest.mark.parametrize(
     "bad",
     [["--model", "vgg"], ["--model", "unet", "--steps", "0"], ["--model", "unet", "--lr", "x"],
-     ["--model", "unet", "--render-size", "64"], ["--model", "unet", "--crop", "999"]],
+     ["--model", "unet", "--render-size", "64"], ["--model", "unet", "--crop", "999"],
+     ["--model", "unet", "--device", "tpu9"], *NO_CUDA],
 )  # fmt: skip
 def test_train_refuses_bad_arguments(bad: list[str], tmp_path: Path) -> None:
     from server.cli import main

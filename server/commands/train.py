@@ -112,6 +112,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--threads", type=_positive_int, default=2, help="torch CPU threads")
     parser.add_argument(
+        "--device",
+        default="cpu",
+        help="where the network trains: cpu (the default) or cuda; the weights are saved "
+        "for the CPU either way",
+    )
+    parser.add_argument(
+        "--data-workers",
+        type=_positive_int,
+        default=1,
+        help="processes rendering the game's training sequences when they are not cached "
+        "(the data are the same for any number)",
+    )
+    parser.add_argument(
         "--fresh-start",
         type=_share,
         default=0.0,
@@ -163,6 +176,12 @@ def run(args: argparse.Namespace) -> int:
         render = Size.parse(args.render_size)
     except ValueError as e:
         raise SystemExit(f"--render-size: {e}") from None
+    try:
+        device = torch.device(args.device)
+    except RuntimeError as e:
+        raise SystemExit(f"--device: {e}") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise SystemExit("--device cuda: torch sees no CUDA device here (train on cpu)")
     if args.crop > min(render):
         raise SystemExit(f"--crop {args.crop} is larger than the render size {render}")
     scale = 2
@@ -185,7 +204,7 @@ def run(args: argparse.Namespace) -> int:
     started = time.monotonic()
     print(f"[data] {spec.sequences} sequences at {render} -> 2x, cache {args.data_dir}",
           file=sys.stderr)  # fmt: skip
-    game_data = load_or_generate(spec, args.data_dir)
+    game_data = load_or_generate(spec, args.data_dir, workers=args.data_workers)
     try:
         data = build_mix(
             game_data,
@@ -211,6 +230,7 @@ def run(args: argparse.Namespace) -> int:
         minutes=args.minutes,
         cached_share=args.cache_aware,
         fresh_share=args.fresh_start,
+        device=args.device,
     )
     result = train(model, data, cfg, scale)
     if result.stopped_early:
@@ -251,7 +271,9 @@ def run(args: argparse.Namespace) -> int:
         "params": sum(p.numel() for p in model.parameters()),
         "gflops_640x360": round(flops[""] / 1e9, 3),
         "threads": args.threads,
+        "device": args.device,
         "machine": platform.processor() or platform.machine(),
+        "gpu": torch.cuda.get_device_name(device) if device.type == "cuda" else None,
         "torch": str(torch.__version__),
     }
     save_checkpoint(out, args.model, model, scale, meta)

@@ -17,10 +17,13 @@ parameter, so a rerun loads it instead of rendering again.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
+import multiprocessing as mp
 import sys
 import time
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -109,8 +112,13 @@ def _sequence_plan(spec: DatasetSpec) -> list[tuple[str, int, float, float, int]
     return plan
 
 
-def generate(spec: DatasetSpec, progress: bool = True) -> Dataset:
+def generate(spec: DatasetSpec, progress: bool = True, workers: int = 1) -> Dataset:
+    """Render every sequence of ``spec``; ``workers`` > 1 renders sequences in that many
+    processes (one torch thread each). Each sequence depends on its own plan entry
+    alone, so the data are the same whatever the number of workers."""
     spec.check()
+    if workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
     render = Size.parse(spec.render_size)
     w, h = render
     s, n, nt = spec.scale, spec.frames, spec.truth_frames
@@ -122,37 +130,78 @@ def generate(spec: DatasetSpec, progress: bool = True) -> Dataset:
         near_far=np.empty((spec.sequences, 2), np.float32),
         truth=np.empty((spec.sequences, nt, h * s, w * s, 3), np.uint8),
     )
-    display = Size(w * s, h * s)
+    plan = _sequence_plan(spec)
+    jobs = [(spec, entry) for entry in plan]
     started = time.monotonic()
-    for i, (scene, scene_seed, t0, dt, first) in enumerate(_sequence_plan(spec)):
-        renderer = Renderer(
-            scene,
-            render,
-            seed=scene_seed,
-            jitter=True,
-            scale=float(s),
-            texture_lod_bias=spec.texture_lod_bias,
-        )
-        for f in range(n):
-            t = t0 + f * dt
-            frame = renderer.render(first + f, t, prev_t=t - dt)
-            data.color[i, f] = frame.color
-            data.depth[i, f] = frame.depth
-            data.motion[i, f] = frame.motion
-            data.jitter[i, f] = frame.meta.jitter
-            cam = frame.meta.camera
-            data.near_far[i] = (cam.near, cam.far)
-        for k in range(nt):
-            t = t0 + (n - nt + k) * dt
-            # The truth picks the display size's mips whatever the renders' bias.
-            data.truth[i, k] = renderer.render_ground_truth(t, display, spec.supersample)
-        if progress:
-            elapsed, eta = elapsed_and_left(i + 1, spec.sequences, started)
-            report_progress(
-                f"[data] sequence {i + 1}/{spec.sequences} ({scene}) "
-                f"{elapsed:.0f} s, eta {eta:.0f} s"
+    with contextlib.ExitStack() as stack:
+        if workers == 1:
+            rendered: Iterator[_Rendered] = map(_render_sequence, jobs)
+        else:
+            pool = stack.enter_context(
+                mp.get_context("spawn").Pool(workers, initializer=_one_thread)
             )
+            rendered = pool.imap(_render_sequence, jobs)
+        for i, seq in enumerate(rendered):
+            data.color[i], data.depth[i], data.motion[i] = seq.color, seq.depth, seq.motion
+            data.jitter[i], data.near_far[i], data.truth[i] = seq.jitter, seq.near_far, seq.truth
+            if progress:
+                elapsed, eta = elapsed_and_left(i + 1, spec.sequences, started)
+                report_progress(
+                    f"[data] sequence {i + 1}/{spec.sequences} ({plan[i][0]}) "
+                    f"{elapsed:.0f} s, eta {eta:.0f} s"
+                )
     return data
+
+
+@dataclass
+class _Rendered:
+    """One sequence's arrays (a worker's answer)."""
+
+    color: npt.NDArray[np.uint8]
+    depth: npt.NDArray[np.float16]
+    motion: npt.NDArray[np.float16]
+    jitter: npt.NDArray[np.float32]
+    near_far: npt.NDArray[np.float32]
+    truth: npt.NDArray[np.uint8]
+
+
+def _one_thread() -> None:
+    import torch
+
+    torch.set_num_threads(1)  # the workers share the cores between them
+
+
+def _render_sequence(job: tuple[DatasetSpec, tuple[str, int, float, float, int]]) -> _Rendered:
+    spec, (scene, scene_seed, t0, dt, first) = job
+    render = Size.parse(spec.render_size)
+    s, n, nt = spec.scale, spec.frames, spec.truth_frames
+    display = Size(render.width * s, render.height * s)
+    renderer = Renderer(
+        scene,
+        render,
+        seed=scene_seed,
+        jitter=True,
+        scale=float(s),
+        texture_lod_bias=spec.texture_lod_bias,
+    )
+    frames = []
+    for f in range(n):
+        t = t0 + f * dt
+        frames.append(renderer.render(first + f, t, prev_t=t - dt))
+    cam = frames[-1].meta.camera
+    truth = [
+        # The truth picks the display size's mips whatever the renders' bias.
+        renderer.render_ground_truth(t0 + (n - nt + k) * dt, display, spec.supersample)
+        for k in range(nt)
+    ]
+    return _Rendered(
+        color=np.stack([f.color for f in frames]),
+        depth=np.stack([f.depth for f in frames]).astype(np.float16),
+        motion=np.stack([f.motion for f in frames]).astype(np.float16),
+        jitter=np.array([f.meta.jitter for f in frames], np.float32),
+        near_far=np.array((cam.near, cam.far), np.float32),
+        truth=np.stack(truth),
+    )
 
 
 def load_cached(path: Path) -> Dataset | None:
@@ -177,11 +226,14 @@ def save(data: Dataset, path: Path) -> None:
     tmp.replace(path)
 
 
-def load_or_generate(spec: DatasetSpec, data_dir: Path, progress: bool = True) -> Dataset:
-    """The dataset of ``spec`` from ``data_dir`` if cached there, else rendered and saved."""
+def load_or_generate(
+    spec: DatasetSpec, data_dir: Path, progress: bool = True, workers: int = 1
+) -> Dataset:
+    """The dataset of ``spec`` from ``data_dir`` if cached there, else rendered (by
+    ``workers`` processes) and saved."""
     path = data_dir / f"train-{spec.key()}.npz"
     data = load_cached(path)
     if data is None:
-        data = generate(spec, progress)
+        data = generate(spec, progress, workers)
         save(data, path)
     return data

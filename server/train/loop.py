@@ -56,6 +56,8 @@ class TrainConfig:
     # Share of unrolled frames after the first that reuse the previous frame's deep
     # branch output (cache-aware training; 0: never).
     cached_share: float = 0.0
+    # Where the network trains ("cpu", "cuda"): batches are made on the CPU and moved.
+    device: str = "cpu"
     # Share of steps whose unroll starts at the first frame with truth, so the frame
     # without history (a first frame, a cut, a reset) is trained. With a uniform start
     # only 1 in (warm-up frames + 1) steps train it, and a network trained so fell below
@@ -114,18 +116,21 @@ def _batch(
             jit.append(j)
             if g is not None:
                 gts.append(np.ascontiguousarray(g))
-        color = torch.from_numpy(np.stack(col)).permute(0, 3, 1, 2).float().div_(255.0)
+        dev = cfg.device
+        color = torch.from_numpy(np.stack(col)).to(dev).permute(0, 3, 1, 2).float().div_(255.0)
         frames.append(
             FrameTensors(
                 color=color,
-                depth=torch.from_numpy(np.stack(dep)).unsqueeze(1),
-                motion=torch.from_numpy(np.stack(mot)).permute(0, 3, 1, 2).contiguous(),
-                jitter=torch.from_numpy(np.stack(jit)),
-                near_far=torch.from_numpy(data.near_far[seqs]),
+                depth=torch.from_numpy(np.stack(dep)).to(dev).unsqueeze(1),
+                motion=torch.from_numpy(np.stack(mot)).to(dev).permute(0, 3, 1, 2).contiguous(),
+                jitter=torch.from_numpy(np.stack(jit)).to(dev),
+                near_far=torch.from_numpy(data.near_far[seqs]).to(dev),
             )
         )
         truths.append(
-            torch.from_numpy(np.stack(gts)).permute(0, 3, 1, 2).float().div_(255.0) if gts else None
+            torch.from_numpy(np.stack(gts)).to(dev).permute(0, 3, 1, 2).float().div_(255.0)
+            if gts
+            else None
         )
     return frames, truths
 
@@ -180,12 +185,14 @@ def train(
         raise ValueError(f"fresh_share must be in [0, 1], got {cfg.fresh_share}")
     # The cache installs wrappers in place of the deep branch: restored before returning,
     # so the model's parameters and state-dict names stay what they were.
+    model.to(cfg.device)
     cache = LayerCache(model) if cfg.cached_share > 0 else None
     try:
         return _train(model, data, cfg, scale, progress, cache)
     finally:
         if cache is not None:
             cache.restore()
+        model.to("cpu")  # saved and used on the CPU
 
 
 def _train(
