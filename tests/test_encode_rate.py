@@ -66,16 +66,29 @@ def test_intra_refresh_sends_no_periodic_idr_but_honours_requests() -> None:
         assert psnr(decoded[i].to_ndarray(format="rgb24"), textured(i)) > 30, i
 
 
+def smooth_pan(i: int) -> npt.NDArray[np.uint8]:
+    """The same smooth noise panning 2 px a frame, without fresh grain: predicted frames
+    are cheap, so a periodic IDR stands out."""
+    rng = np.random.default_rng(7)
+    base = rng.integers(0, 256, (H // 4, W // 4 + 64, 3)).astype(np.uint8)
+    big = np.repeat(np.repeat(base, 4, axis=0), 4, axis=1)
+    return np.ascontiguousarray(np.roll(big, -2 * i, axis=1)[:, :W])
+
+
 def test_intra_refresh_keeps_frames_near_the_average_size() -> None:
-    """No keyframe spike: after the first IDR the largest frame stays within a few
-    times the average, where periodic IDRs are many times larger."""
-    periodic = VideoEncoder(EncoderConfig(W, H, fps=FPS, bitrate=600_000, gop_seconds=0.5))
-    refresh = VideoEncoder(
-        EncoderConfig(W, H, fps=FPS, bitrate=600_000, gop_seconds=0.5, intra_refresh=True)
-    )
+    """No keyframe spike: after the first IDR the largest frame stays nearer the average
+    than with periodic IDRs. The VBV (one frame's worth) caps every frame near the
+    average either way, so the gap is small (1.22x against 1.31x here): content with
+    cheap predicted frames and one x264 thread (sliced threads made the sizes vary from
+    run to run; with fresh grain in every frame the two were 1.20x against 1.21x and the
+    order flipped in 1 run of 5)."""
     sizes = {}
-    for name, enc in (("periodic", periodic), ("refresh", refresh)):
-        frames = encode_run(enc, 0, 60)[1:]
+    for name, refresh in (("periodic", False), ("refresh", True)):
+        config = EncoderConfig(
+            W, H, fps=FPS, bitrate=600_000, gop_seconds=0.5, intra_refresh=refresh, threads=1
+        )
+        enc = VideoEncoder(config)
+        frames = [enc.encode(smooth_pan(i), i, i * 33_333) for i in range(60)][1:]
         lengths = [len(f.fragment) for f in frames]
         sizes[name] = max(lengths) / float(np.mean(lengths))
-    assert sizes["refresh"] < sizes["periodic"], sizes
+    assert sizes["refresh"] < sizes["periodic"] - 0.05, sizes
