@@ -142,8 +142,8 @@ def generate(spec: DatasetSpec, progress: bool = True, workers: int = 1) -> Data
             )
             rendered = pool.imap(_render_sequence, jobs)
         for i, seq in enumerate(rendered):
-            data.color[i], data.depth[i], data.motion[i] = seq.color, seq.depth, seq.motion
-            data.jitter[i], data.near_far[i], data.truth[i] = seq.jitter, seq.near_far, seq.truth
+            for name in Dataset.__dataclass_fields__:
+                getattr(data, name)[i] = getattr(seq, name)
             if progress:
                 elapsed, eta = elapsed_and_left(i + 1, spec.sequences, started)
                 report_progress(
@@ -155,7 +155,8 @@ def generate(spec: DatasetSpec, progress: bool = True, workers: int = 1) -> Data
 
 @dataclass
 class _Rendered:
-    """One sequence's arrays (a worker's answer)."""
+    """One sequence's arrays (a worker's answer): Dataset's fields without the sequence
+    axis."""
 
     color: npt.NDArray[np.uint8]
     depth: npt.NDArray[np.float16]

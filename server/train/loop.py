@@ -23,9 +23,10 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -75,6 +76,11 @@ class TrainResult:
     final_loss_by_part: dict[str, float] = field(default_factory=dict)
 
 
+def _stacked(parts: Sequence[npt.NDArray[Any]], device: str) -> torch.Tensor:
+    """The crops of one frame as one tensor on the training device."""
+    return torch.from_numpy(np.stack(parts)).to(device)
+
+
 def _batch(
     data: Dataset, rng: np.random.Generator, cfg: TrainConfig, scale: int, fresh: bool = False
 ) -> tuple[list[FrameTensors], list[torch.Tensor | None]]:
@@ -116,21 +122,17 @@ def _batch(
             jit.append(j)
             if g is not None:
                 gts.append(np.ascontiguousarray(g))
-        dev = cfg.device
-        color = torch.from_numpy(np.stack(col)).to(dev).permute(0, 3, 1, 2).float().div_(255.0)
         frames.append(
             FrameTensors(
-                color=color,
-                depth=torch.from_numpy(np.stack(dep)).to(dev).unsqueeze(1),
-                motion=torch.from_numpy(np.stack(mot)).to(dev).permute(0, 3, 1, 2).contiguous(),
-                jitter=torch.from_numpy(np.stack(jit)).to(dev),
-                near_far=torch.from_numpy(data.near_far[seqs]).to(dev),
+                color=_stacked(col, cfg.device).permute(0, 3, 1, 2).float().div_(255.0),
+                depth=_stacked(dep, cfg.device).unsqueeze(1),
+                motion=_stacked(mot, cfg.device).permute(0, 3, 1, 2).contiguous(),
+                jitter=_stacked(jit, cfg.device),
+                near_far=torch.from_numpy(data.near_far[seqs]).to(cfg.device),
             )
         )
         truths.append(
-            torch.from_numpy(np.stack(gts)).to(dev).permute(0, 3, 1, 2).float().div_(255.0)
-            if gts
-            else None
+            _stacked(gts, cfg.device).permute(0, 3, 1, 2).float().div_(255.0) if gts else None
         )
     return frames, truths
 
