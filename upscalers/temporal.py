@@ -30,12 +30,17 @@ Per frame:
    its taps at their jittered positions, worth ``reset_weight`` in that frame's
    blend and ``reset_carry`` after it: the frames after a cut are about as good as
    a spatial upscaler's.
-3. Output: uint8 sRGB (3, H, W), what ring U holds; conversion from YCoCg, scale,
-   rounding and clamp are one matrix product and a clamp. Then RCAS sharpens it
-   (the history itself stays unsharpened, as in FSR 2) and each display pixel is
-   clamped to the 3x3 range of the frame's colour around its render pixel: detail
-   without a halo past the input's local range. Not on a reset frame, which is
-   mostly EASU's start and sharp already.
+3. Back-projection (``back_projection.py``): the new history predicts this frame's
+   samples (the box over each sample's footprint at its jittered position) and a
+   fraction of the error goes back to the display pixels each footprint covers.
+   Accumulation alone converges to the picture blurred by the render pixel's box;
+   these steps recover what the overlapping, shifted boxes still tell apart. Not on a
+   reset frame, which is mostly EASU's start.
+4. Output: uint8 sRGB (3, H, W), what ring U holds; conversion from YCoCg, scale,
+   rounding and clamp are one matrix product and a clamp. RCAS can sharpen it
+   (``output_sharpness``; off by default since back-projection) and each display
+   pixel is clamped to the 3x3 range of the frame's colour around its render pixel:
+   detail without a halo past the input's local range. Not on a reset frame.
 
 Colour space: history is kept in YCoCg of the *sRGB-encoded* values. The
 input and the output are sRGB, so no transfer-function work happens at display
@@ -71,6 +76,7 @@ import torch.nn.functional as F
 
 from server.frames.frame import FrameFlags, RenderFrame, Size
 from upscalers import temporal_ops as ops
+from upscalers.back_projection import AxisTaps, back_project, cached_axis_taps
 from upscalers.base import BACKENDS, Backend, Upscaler, numba_can_run
 from upscalers.fsr1_easu import Easu
 from upscalers.fsr1_rcas import Rcas
@@ -182,7 +188,7 @@ class TemporalUpscaler(Upscaler):
             return self._upscale_host(self._host, frame, jit)
 
         # ---- render size: colour, box, dilated motion, trust, accumulated weight ----
-        ycocg, lo, hi, prev_weight, mv = self._render_stage(frame, jit, ops.near_far(frame))
+        raw, ycocg, lo, hi, prev_weight, mv = self._render_stage(frame, jit, ops.near_far(frame))
         self._prev_jitter = jit
 
         # ---- display size ----
@@ -229,34 +235,52 @@ class TemporalUpscaler(Upscaler):
         else:
             history = new.reshape(1, 3, big_h, big_w).to(self.storage_dtype)
         self._history = history
+        step = p.back_projection
+        if step is not None and not reset:
+            work = history[0] if history.dtype == torch.float32 else history[0].float()
+            back_project(work, raw, *self._back_taps(render, display, jit), step)
+            if work.data_ptr() != history.data_ptr():
+                history[0].copy_(work)
         rgb8 = ops.ycocg_to_rgb8(history[0])
         # A reset frame is mostly EASU's start, sharp already: RCAS on top lost 0.3 dB
-        # there on photographs. Accumulated frames are softer (each sample is a box over
-        # its render pixel) and gain from it.
-        return rgb8 if reset else self._sharpen_output(rgb8, frame)
+        # there on photographs, and it stays as it is.
+        return rgb8 if reset else self._finish_output(rgb8, frame)
+
+    def _back_taps(
+        self, render: Size, display: Size, jit: tuple[float, float]
+    ) -> tuple[AxisTaps, AxisTaps]:
+        return (
+            cached_axis_taps(render.width, display.width, jit[0]),
+            cached_axis_taps(render.height, display.height, jit[1]),
+        )
 
     def _reset_easu(self) -> Easu:
         if self._easu is None:
             self._easu = Easu(dtype=torch.float32)
         return self._easu
 
-    def _sharpen_output(self, rgb8: torch.Tensor, frame: RenderFrame) -> torch.Tensor:
-        """RCAS of the (3, H, W) uint8 output (``TemporalParams.output_sharpness``),
+    def _finish_output(self, rgb8: torch.Tensor, frame: RenderFrame) -> torch.Tensor:
+        """RCAS of the (3, H, W) uint8 output if asked (``TemporalParams.output_sharpness``),
         quantized as the numba path's ``rcas_to_rgb8`` does (clamp, x 255 + 0.5, floor),
-        then clamped to the 3x3 range of the frame's own colour around each display
-        pixel's render pixel: RCAS keeps a pixel near its neighbours' range, not inside
-        it (a 64|191 step came out 57..198)."""
+        then, after RCAS or back-projection, clamped to the 3x3 range of the frame's own
+        colour around each display pixel's render pixel: RCAS keeps a pixel near its
+        neighbours' range, not inside it (a 64|191 step came out 57..198), and
+        back-projection, which undoes a blur, overshoots an edge the samples cannot
+        resolve."""
         stops = self.params.output_sharpness
-        if stops is None:
+        if stops is None and self.params.back_projection is None:
             return rgb8
-        if self._rcas is None:
-            self._rcas = Rcas(sharpness=stops)
         _, big_h, big_w = rgb8.shape
         dev = rgb8.device
-        padded = torch.empty((3, big_h + 2, big_w + 2), device=dev, dtype=torch.float32)
-        padded[:, 1:-1, 1:-1].copy_(rgb8).mul_(1.0 / 255.0)
-        sharp = self._rcas(padded)
-        out = sharp.mul_(255.0).add_(0.5).floor_().clamp_(0.0, 255.0)
+        if stops is None:
+            out = rgb8.to(torch.float32)
+        else:
+            if self._rcas is None:
+                self._rcas = Rcas(sharpness=stops)
+            padded = torch.empty((3, big_h + 2, big_w + 2), device=dev, dtype=torch.float32)
+            padded[:, 1:-1, 1:-1].copy_(rgb8).mul_(1.0 / 255.0)
+            sharp = self._rcas(padded)
+            out = sharp.mul_(255.0).add_(0.5).floor_().clamp_(0.0, 255.0)
         color = ops.as_tensor(frame.color, dev).permute(2, 0, 1).to(torch.float32)
         lo, hi = ops.box_3x3(color)
         h, w = color.shape[1:]
@@ -297,9 +321,9 @@ class TemporalUpscaler(Upscaler):
     def _render_stage(
         self, frame: RenderFrame, jit: tuple[float, float], nf: tuple[float, float] | None
     ) -> tuple[torch.Tensor, ...]:
-        """YCoCg samples (presharpened if asked), the 3x3 box of the samples as rendered,
-        the trusted accumulated weight and the dilated motion; keeps this frame's 2x2
-        max depth for the next one."""
+        """YCoCg samples as rendered and presharpened if asked, the 3x3 box of the samples
+        as rendered, the trusted accumulated weight and the dilated motion; keeps this
+        frame's 2x2 max depth for the next one."""
         p = self.params
         dev = ops.input_device(frame, self.device)
         dt = self.dtype
@@ -327,7 +351,7 @@ class TemporalUpscaler(Upscaler):
         lin_d, mv = ops.closest_3x3(lin, motion.permute(2, 0, 1))
         prev_weight = self._reproject_weight(lin_d, mv, mask_d, jit)
         self._prev_far = ops.max_2x2(lin)
-        return ycocg, lo, hi, prev_weight, mv
+        return raw, ycocg, lo, hi, prev_weight, mv
 
     def _fetch_history(
         self, history: torch.Tensor, motion: torch.Tensor, layout: torch.Size, w: int, h: int

@@ -28,6 +28,7 @@ from server.frames.frame import RenderFrame, Size
 from upscalers import fsr1_cpu_kernels as fsr1_kernels
 from upscalers import temporal_cpu_kernels as kernels
 from upscalers import temporal_ops as ops
+from upscalers.back_projection import cached_axis_taps
 from upscalers.fsr1_easu import Easu
 
 if TYPE_CHECKING:
@@ -123,6 +124,9 @@ class HostTemporal:
         self._history = np.zeros((3, big_h, big_w), np.float32)
         self._spare = np.zeros((3, big_h, big_w), np.float32)
         self._rcas_in = np.zeros((3, big_h + 2, big_w + 2), np.float32)  # output, bordered
+        # Back-projection's scratch: the prediction along the columns, the error.
+        self._across = np.zeros((3, big_h, w), np.float32)
+        self._error = np.zeros((3, h, w), np.float32)
         self._box_lo = np.zeros((h, w, 3), np.uint8)  # the colour's 3x3 box (render size)
         self._box_hi = np.zeros((h, w, 3), np.uint8)
         self._weight = np.zeros((h, w), np.float32)
@@ -190,20 +194,41 @@ class HostTemporal:
             mode = kernels.PREV_FETCH
         out = self._output()
         self._display_stage(phase, mode, out)
-        stops = self.params.output_sharpness
-        if stops is not None and not reset:  # as TemporalUpscaler.upscale
-            # TemporalUpscaler._sharpen_output: the same RCAS kernel as FSR 1's.
+        if not reset:  # as TemporalUpscaler.upscale
+            self._finish_output(frame, jit, out)
+        self._history, self._spare = self._spare, self._history
+        self._has_history = True
+        return torch.from_numpy(out).permute(2, 0, 1)
+
+    def _finish_output(
+        self, frame: RenderFrame, jit: tuple[float, float], out: npt.NDArray[np.uint8]
+    ) -> None:
+        """Back-projection of the new history (in the spare buffer) and RCAS, as asked,
+        and the clamp after either (``TemporalUpscaler._finish_output``)."""
+        p = self.params
+        if p.back_projection is not None:
+            w, h = self.render
+            big_w, big_h = self.display
+            tx = cached_axis_taps(w, big_w, jit[0])
+            ty = cached_axis_taps(h, big_h, jit[1])
+            kernels.back_project(
+                self._spare, self._buf.raw, tx.forward_index, tx.forward_weight,
+                ty.forward_index, ty.forward_weight, tx.back_index, tx.back_weight,
+                ty.back_index, ty.back_weight, np.float32(p.back_projection), self._across,
+                self._error, out,
+            )  # fmt: skip
+        stops = p.output_sharpness
+        if stops is not None:
+            # TemporalUpscaler._finish_output: the same RCAS kernel as FSR 1's.
             kernels.rgb8_to_padded(out, self._rcas_in)
             big_w, big_h = self.display
             fsr1_kernels.rcas_to_rgb8(
                 self._rcas_in, np.float32(2.0**-stops), out.reshape(big_h, 3 * big_w)
             )
+        if stops is not None or p.back_projection is not None:
             color = np.ascontiguousarray(frame.color, dtype=np.uint8)
             kernels.rgb8_box_3x3(color, self._box_lo, self._box_hi)
             kernels.clamp_rgb8(out, self._box_lo, self._box_hi, self._near_x, self._near_y)
-        self._history, self._spare = self._spare, self._history
-        self._has_history = True
-        return torch.from_numpy(out).permute(2, 0, 1)
 
     def _output(self) -> npt.NDArray[np.uint8]:
         """An (H, W, 3) uint8 array nobody else holds: a kept one whose last result was let

@@ -853,3 +853,48 @@ def clamp_rgb8(out, lo, hi, near_x, near_y):
             j = near_x[x]
             for c in range(3):
                 out[y, x, c] = min(max(out[y, x, c], lo[i, j, c]), hi[i, j, c])
+
+
+@njit(parallel=True, **_JIT)
+def back_project(
+    hist, raw, fx_i, fx_w, fy_i, fy_w, bx_i, bx_w, by_i, by_w, step, across, error, out
+):
+    """One back-projection step on the (3, H, W) history in place
+    (``back_projection.back_project``), then the history as uint8 sRGB into ``out``.
+    ``raw``: the frame's padded (3, h, w + 2) YCoCg; ``across`` (3, H, w) and ``error``
+    (3, h, w): scratch. Four passes: the prediction along the columns, along the rows
+    and the error; the error back along the rows (into ``across``, free by then) and
+    along the columns, added to the history row by row."""
+    big_h, big_w = hist.shape[1], hist.shape[2]
+    h, w = error.shape[1], error.shape[2]
+    n_fx, n_fy, n_bx, n_by = fx_i.shape[1], fy_i.shape[1], bx_i.shape[1], by_i.shape[1]
+    for y in prange(big_h):
+        for c in range(3):
+            src, dst = hist[c, y], across[c, y]
+            for r in range(w):
+                acc = F32(0.0)
+                for t in range(n_fx):
+                    acc += src[fx_i[r, t]] * fx_w[r, t]
+                dst[r] = acc
+    for i in prange(h):
+        for c in range(3):
+            dst, seen = error[c, i], raw[c, i]
+            for r in range(w):
+                acc = F32(0.0)
+                for t in range(n_fy):
+                    acc += across[c, fy_i[i, t], r] * fy_w[i, t]
+                dst[r] = seen[r + 1] - acc
+    for y in prange(big_h):
+        for c in range(3):
+            down, row = across[c, y], hist[c, y]
+            for r in range(w):
+                acc = F32(0.0)
+                for u in range(n_by):
+                    acc += error[c, by_i[y, u], r] * by_w[y, u]
+                down[r] = acc
+            for x in range(big_w):
+                acc = F32(0.0)
+                for u in range(n_bx):
+                    acc += down[bx_i[x, u]] * bx_w[x, u]
+                row[x] = fma32(step, acc, row[x])
+        _rgb_row(hist, y, out)

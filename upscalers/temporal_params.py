@@ -51,9 +51,23 @@ class TemporalParams:
     # whole, its blur lingered (0.3 dB on the game's scenes). 0.5: -0.2 dB there, static
     # game scene -0.1 dB.
     reset_carry: float = 0.5
+    # Back-projection (upscalers/back_projection.py): the fraction of each frame's
+    # prediction error (its samples against the box averages of the history over their
+    # footprints) added back to the history; None: off. It recovers the detail the
+    # render pixels' boxes average away, where accumulation alone converges to the
+    # box-blurred picture. 0.3, chosen on the training photographs and the game's scenes
+    # (display 640x360, 2x, against the sharpened accumulation it replaces): photographs'
+    # still cameras +1.41 dB and pans +1.56 dB; game scenes +0.16 to +0.33 dB on the five
+    # with motion or cuts, moving_objects -0.05, thin_detail -0.11, static -0.29 (a
+    # still camera over point-sampled edges, where RCAS had gained more). 0.5 gained 0.1-0.4
+    # dB more on photographs but cost the game 0.9 dB on thin_detail; a full step (1.0)
+    # followed each frame's aliasing (static -1.7, thin_detail -2.6).
+    back_projection: float | None = 0.3
     # RCAS of the output, in stops (0 strongest; None: off), as FSR 2 sharpens after
     # accumulation: the history stays unsharpened, and RCAS never leaves the range of a
-    # pixel's 4 neighbours, so no halo. 0.5 stops: on the game's scenes (2x, 640x360)
-    # +0.04 to +0.6 dB against the presharpened samples it replaces; 1 and 2 stops less.
+    # pixel's 4 neighbours, so no halo. Off since back-projection, which sharpens from
+    # the samples themselves: 2 stops on top of it changed the game's mean by 0.00 dB and
+    # photographs by +0.01-0.05. (Without back-projection, 0.5 stops gained +0.04 to
+    # +0.6 dB on the game's scenes.)
     # Not on a reset frame, mostly EASU's start and sharp already.
-    output_sharpness: float | None = 0.5
+    output_sharpness: float | None = None

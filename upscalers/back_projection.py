@@ -1,0 +1,136 @@
+"""Back-projection of the temporal history onto each frame's own samples.
+
+Accumulating jittered samples gives each display pixel the average of the samples
+that landed near it; but every sample is an average itself, over its render
+pixel's footprint (a box of S x S display pixels at a scale S, shifted by the
+jitter). So the accumulated history converges to the picture blurred by that box,
+not to the picture, and a sharpening filter afterwards can only guess the
+difference (and rings where it guesses wrong).
+
+Back-projection (iterative back-projection, Irani and Peleg 1991; a Landweber step
+of the least-squares problem) instead asks the history to explain the samples: it
+predicts each sample of this frame from the history (the box over the sample's
+footprint, at its jittered position), and adds the prediction error back to the
+display pixels the footprint covers, each display pixel by the error of the
+samples that cover it, weighted by how much they cover it. A still camera's
+jitter moves the footprints over the sub-pixel positions, so over a few frames the
+history approaches a picture whose box averages are the samples: detail the box
+hid, recovered from the overlap of the shifted boxes rather than guessed. Under
+motion the same step corrects what resampling the history blurred.
+
+Each frame corrects with a fraction ``step`` of its error: samples of a real
+renderer are not exact box averages (a point-sampled edge aliases, and differs
+from frame to frame), and a full step would follow each frame's aliasing; a
+fraction averages it over frames as the accumulation does.
+
+The operator is separable: per axis, a render sample covers a run of display
+pixels (weights: overlap / footprint width, edges replicated), and a display pixel
+is covered by a few samples (its back weights: their coverage over the total).
+The tables depend on the size and the jitter only and are shared by the torch
+path (here) and the numba kernel (``temporal_cpu_kernels.back_project``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+import numpy.typing as npt
+import torch
+
+I64Array = npt.NDArray[np.int64]
+F32Array = npt.NDArray[np.float32]
+
+
+@dataclass(frozen=True)
+class AxisTaps:
+    """One axis of the operator: sample r predicted as sum_t forward_weight[r, t] *
+    history[forward_index[r, t]]; display pixel k corrected by sum_u back_weight[k, u] *
+    error[back_index[k, u]]. Unused taps have weight 0 and index 0."""
+
+    forward_index: I64Array  # (n_render, T)
+    forward_weight: F32Array
+    back_index: I64Array  # (n_display, U)
+    back_weight: F32Array
+
+
+def axis_taps(n_render: int, n_display: int, jitter: float) -> AxisTaps:
+    """Taps of one axis: render pixel r's footprint is the box of width n_display /
+    n_render display pixels centred on its sample, at (r + 0.5 + jitter) render pixels;
+    display pixel k spans [k, k + 1). Footprint parts beyond the image count for the
+    edge pixel (the edge is replicated)."""
+    if n_render < 1 or n_display < 1:
+        raise ValueError(f"axis sizes must be positive, got {n_render} -> {n_display}")
+    scale = n_display / n_render
+    coverage = np.zeros((n_render, n_display), np.float64)
+    for r in range(n_render):
+        centre = scale * (r + 0.5 + jitter)
+        lo, hi = centre - scale / 2, centre + scale / 2
+        for k in range(math.floor(lo), math.ceil(hi)):
+            overlap = min(hi, k + 1.0) - max(lo, float(k))
+            if overlap > 0.0:
+                coverage[r, min(max(k, 0), n_display - 1)] += overlap / scale
+    forward_index, forward_weight = _rows_as_taps(coverage)
+    total = coverage.sum(axis=0, keepdims=True)
+    # A display pixel no footprint covers (the last one at a jitter of -0.5, where every
+    # footprint moved half a render pixel back) gets no correction.
+    back = np.divide(coverage, total, out=np.zeros_like(coverage), where=total > 0.0)
+    back_index, back_weight = _rows_as_taps(back.T)
+    return AxisTaps(forward_index, forward_weight, back_index, back_weight)
+
+
+@lru_cache(maxsize=512)
+def cached_axis_taps(n_render: int, n_display: int, jitter: float) -> AxisTaps:
+    """``axis_taps``, kept per size and jitter (a jitter sequence repeats: 8 phases at 2x,
+    72 at 3x); callers share the arrays and only read them."""
+    return axis_taps(n_render, n_display, jitter)
+
+
+def _rows_as_taps(matrix: npt.NDArray[np.float64]) -> tuple[I64Array, F32Array]:
+    """A sparse row-per-output matrix as (index, weight) tables padded to the widest row."""
+    nonzero = matrix != 0.0
+    width = max(1, int(nonzero.sum(axis=1).max()))
+    index = np.zeros((matrix.shape[0], width), np.int64)
+    weight = np.zeros((matrix.shape[0], width), np.float32)
+    for row in range(matrix.shape[0]):
+        cols = np.flatnonzero(nonzero[row])
+        index[row, : len(cols)] = cols
+        weight[row, : len(cols)] = matrix[row, cols]
+    return index, weight
+
+
+def _index(a: I64Array, like: torch.Tensor) -> torch.Tensor:
+    return torch.from_numpy(a).to(like.device)
+
+
+def _weight(a: F32Array, like: torch.Tensor) -> torch.Tensor:
+    return torch.from_numpy(a).to(device=like.device, dtype=like.dtype)
+
+
+def predict(history: torch.Tensor, taps_x: AxisTaps, taps_y: AxisTaps) -> torch.Tensor:
+    """The (3, h, w) samples the (3, H, W) history predicts: the box over each sample's
+    footprint, along the columns ((3, H, w)), then along the rows."""
+    fx = _weight(taps_x.forward_weight, history)
+    across = (history[:, :, _index(taps_x.forward_index, history)] * fx).sum(-1)
+    fy = _weight(taps_y.forward_weight, history).unsqueeze(-1)
+    return (across[:, _index(taps_y.forward_index, history), :] * fy).sum(2)
+
+
+def back_project(
+    history: torch.Tensor,
+    samples: torch.Tensor,
+    taps_x: AxisTaps,
+    taps_y: AxisTaps,
+    step: float,
+) -> None:
+    """One step on the (3, H, W) history in place, towards explaining the (3, h, w)
+    samples (same colour space)."""
+    error = samples - predict(history, taps_x, taps_y)
+    # The error back to the display pixels, along the rows ((3, H, w)), then the columns.
+    by = _weight(taps_y.back_weight, history).unsqueeze(-1)
+    down = (error[:, _index(taps_y.back_index, history), :] * by).sum(2)
+    bx = _weight(taps_x.back_weight, history)
+    correction = (down[:, :, _index(taps_x.back_index, history)] * bx).sum(-1)
+    history.add_(correction, alpha=step)
