@@ -212,10 +212,10 @@ class HostTemporal:
             tx = cached_axis_taps(w, big_w, jit[0])
             ty = cached_axis_taps(h, big_h, jit[1])
             kernels.back_project(
-                self._spare, self._buf.raw, tx.forward_index, tx.forward_weight,
-                ty.forward_index, ty.forward_weight, tx.back_index, tx.back_weight,
-                ty.back_index, ty.back_weight, np.float32(p.back_projection), self._across,
-                self._error, out,
+                self._spare, self._buf.raw, tx.forward_index.T.copy(), tx.forward_weight.T.copy(),
+                ty.forward_index, ty.forward_weight, tx.back_index.T.copy(),
+                tx.back_weight.T.copy(), ty.back_index, ty.back_weight,
+                np.float32(p.back_projection), self._across, self._error, out,
             )  # fmt: skip
         stops = p.output_sharpness
         if stops is not None:

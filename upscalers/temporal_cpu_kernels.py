@@ -862,39 +862,44 @@ def back_project(
     """One back-projection step on the (3, H, W) history in place
     (``back_projection.back_project``), then the history as uint8 sRGB into ``out``.
     ``raw``: the frame's padded (3, h, w + 2) YCoCg; ``across`` (3, H, w) and ``error``
-    (3, h, w): scratch. Four passes: the prediction along the columns, along the rows
-    and the error; the error back along the rows (into ``across``, free by then) and
-    along the columns, added to the history row by row."""
+    (3, h, w): scratch. The x tables come transposed, (taps, n): a tap's weights of
+    neighbouring pixels are neighbours in memory. Four passes: the prediction along the
+    columns, along the rows and the error; the error back along the rows (into
+    ``across``, free by then) and along the columns, added to the history row by row.
+    Each sum runs over the taps in order from 0, one tap for a whole row at a time, so
+    the row loops vectorize (the torch path sums the same terms in the same order)."""
     big_h, big_w = hist.shape[1], hist.shape[2]
     h, w = error.shape[1], error.shape[2]
-    n_fx, n_fy, n_bx, n_by = fx_i.shape[1], fy_i.shape[1], bx_i.shape[1], by_i.shape[1]
+    n_fx, n_fy, n_bx, n_by = fx_i.shape[0], fy_i.shape[1], bx_i.shape[0], by_i.shape[1]
     for y in prange(big_h):
         for c in range(3):
             src, dst = hist[c, y], across[c, y]
-            for r in range(w):
-                acc = F32(0.0)
-                for t in range(n_fx):
-                    acc += src[fx_i[r, t]] * fx_w[r, t]
-                dst[r] = acc
+            dst[:] = F32(0.0)
+            for t in range(n_fx):
+                idx, wt = fx_i[t], fx_w[t]
+                for r in range(w):
+                    dst[r] += src[idx[r]] * wt[r]
     for i in prange(h):
         for c in range(3):
             dst, seen = error[c, i], raw[c, i]
+            dst[:] = F32(0.0)
+            for t in range(n_fy):
+                row, wt = across[c, fy_i[i, t]], fy_w[i, t]
+                for r in range(w):
+                    dst[r] += row[r] * wt
             for r in range(w):
-                acc = F32(0.0)
-                for t in range(n_fy):
-                    acc += across[c, fy_i[i, t], r] * fy_w[i, t]
-                dst[r] = seen[r + 1] - acc
+                dst[r] = seen[r + 1] - dst[r]
     for y in prange(big_h):
         for c in range(3):
             down, row = across[c, y], hist[c, y]
-            for r in range(w):
-                acc = F32(0.0)
-                for u in range(n_by):
-                    acc += error[c, by_i[y, u], r] * by_w[y, u]
-                down[r] = acc
+            down[:] = F32(0.0)
+            for u in range(n_by):
+                src, wt = error[c, by_i[y, u]], by_w[y, u]
+                for r in range(w):
+                    down[r] += src[r] * wt
             for x in range(big_w):
                 acc = F32(0.0)
                 for u in range(n_bx):
-                    acc += down[bx_i[x, u]] * bx_w[x, u]
+                    acc += down[bx_i[u, x]] * bx_w[u, x]
                 row[x] = fma32(step, acc, row[x])
         _rgb_row(hist, y, out)
