@@ -890,6 +890,7 @@ def back_project(
             for r in range(w):
                 dst[r] = seen[r + 1] - dst[r]
     for y in prange(big_h):
+        acc = np.empty(big_w, np.float32)
         for c in range(3):
             down, row = across[c, y], hist[c, y]
             down[:] = F32(0.0)
@@ -897,9 +898,11 @@ def back_project(
                 src, wt = error[c, by_i[y, u]], by_w[y, u]
                 for r in range(w):
                     down[r] += src[r] * wt
+            acc[:] = F32(0.0)
+            for u in range(n_bx):
+                idx, wt = bx_i[u], bx_w[u]
+                for x in range(big_w):
+                    acc[x] += down[idx[x]] * wt[x]
             for x in range(big_w):
-                acc = F32(0.0)
-                for u in range(n_bx):
-                    acc += down[bx_i[u, x]] * bx_w[u, x]
-                row[x] = fma32(step, acc, row[x])
+                row[x] = fma32(step, acc[x], row[x])
         _rgb_row(hist, y, out)
