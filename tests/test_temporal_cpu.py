@@ -191,3 +191,18 @@ def test_results_the_caller_keeps_are_not_overwritten() -> None:
         copies.append(out.clone())
         up.upscale(pattern_frame(RENDER, i, motion=0.4), DISPLAY)  # a result let go at once
     assert all(torch.equal(a, b) for a, b in zip(kept, copies, strict=True))
+
+
+@pytest.mark.parametrize(("h", "w"), [(1, 1), (1, 5), (4, 1), (7, 9), (17, 33)])
+def test_the_colour_box_kernel_is_the_torch_box(h: int, w: int) -> None:
+    """The separable uint8 3x3 min / max behind the output's clamp, at the edges and on
+    images one pixel wide or high."""
+    from upscalers import temporal_cpu_kernels as kernels
+    from upscalers import temporal_ops as ops
+
+    color = np.random.default_rng(h * 100 + w).integers(0, 256, (h, w, 3), dtype=np.uint8)
+    lo, hi = np.zeros_like(color), np.zeros_like(color)
+    kernels.rgb8_box_3x3(color, lo, hi)
+    ref_lo, ref_hi = ops.box_3x3(torch.from_numpy(color).permute(2, 0, 1).float())
+    assert np.array_equal(lo, ref_lo.permute(1, 2, 0).numpy().astype(np.uint8))
+    assert np.array_equal(hi, ref_hi.permute(1, 2, 0).numpy().astype(np.uint8))

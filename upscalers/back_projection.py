@@ -64,20 +64,28 @@ def axis_taps(n_render: int, n_display: int, jitter: float) -> AxisTaps:
     if n_render < 1 or n_display < 1:
         raise ValueError(f"axis sizes must be positive, got {n_render} -> {n_display}")
     scale = n_display / n_render
-    coverage = np.zeros((n_render, n_display), np.float64)
-    for r in range(n_render):
-        centre = scale * (r + 0.5 + jitter)
-        lo, hi = centre - scale / 2, centre + scale / 2
-        for k in range(math.floor(lo), math.ceil(hi)):
-            overlap = min(hi, k + 1.0) - max(lo, float(k))
-            if overlap > 0.0:
-                coverage[r, min(max(k, 0), n_display - 1)] += overlap / scale
-    forward_index, forward_weight = _rows_as_taps(coverage)
-    total = coverage.sum(axis=0, keepdims=True)
+    centre = scale * (np.arange(n_render, dtype=np.float64) + 0.5 + jitter)
+    lo, hi = centre - scale / 2, centre + scale / 2
+    # Display pixels a footprint can touch: from floor(lo), ceil(scale) + 1 of them.
+    k = np.floor(lo)[:, None] + np.arange(math.ceil(scale) + 1)[None, :]
+    overlap = np.minimum(hi[:, None], k + 1.0) - np.maximum(lo[:, None], k)
+    rows = np.broadcast_to(np.arange(n_render)[:, None], k.shape)[overlap > 0.0]
+    cols = np.clip(k, 0, n_display - 1).astype(np.int64)[overlap > 0.0]
+    # Parts clipped onto the same edge pixel add up: one entry per (row, column).
+    pairs, which = np.unique(rows * n_display + cols, return_inverse=True)
+    coverage = np.bincount(which, weights=overlap[overlap > 0.0] / scale)
+    rows, cols = pairs // n_display, pairs % n_display
+    forward_index, forward_weight = _rows_as_taps(rows, cols, coverage, n_render)
     # A display pixel no footprint covers (the last one at a jitter of -0.5, where every
     # footprint moved half a render pixel back) gets no correction.
-    back = np.divide(coverage, total, out=np.zeros_like(coverage), where=total > 0.0)
-    back_index, back_weight = _rows_as_taps(back.T)
+    total = np.bincount(cols, weights=coverage, minlength=n_display)
+    by_column = np.lexsort((rows, cols))
+    back_index, back_weight = _rows_as_taps(
+        cols[by_column],
+        rows[by_column],
+        coverage[by_column] / total[cols[by_column]],
+        n_display,
+    )
     return AxisTaps(forward_index, forward_weight, back_index, back_weight)
 
 
@@ -88,16 +96,19 @@ def cached_axis_taps(n_render: int, n_display: int, jitter: float) -> AxisTaps:
     return axis_taps(n_render, n_display, jitter)
 
 
-def _rows_as_taps(matrix: npt.NDArray[np.float64]) -> tuple[I64Array, F32Array]:
-    """A sparse row-per-output matrix as (index, weight) tables padded to the widest row."""
-    nonzero = matrix != 0.0
-    width = max(1, int(nonzero.sum(axis=1).max()))
-    index = np.zeros((matrix.shape[0], width), np.int64)
-    weight = np.zeros((matrix.shape[0], width), np.float32)
-    for row in range(matrix.shape[0]):
-        cols = np.flatnonzero(nonzero[row])
-        index[row, : len(cols)] = cols
-        weight[row, : len(cols)] = matrix[row, cols]
+def _rows_as_taps(
+    rows: I64Array, cols: I64Array, values: npt.NDArray[np.float64], n_rows: int
+) -> tuple[I64Array, F32Array]:
+    """Sparse entries, sorted by row then column, as (index, weight) tables of n_rows
+    rows padded to the widest row."""
+    counts = np.bincount(rows, minlength=n_rows)
+    width = max(1, int(counts.max(initial=0)))
+    starts = np.concatenate(([0], np.cumsum(counts)[:-1]))
+    slot = np.arange(len(rows)) - starts[rows]
+    index = np.zeros((n_rows, width), np.int64)
+    weight = np.zeros((n_rows, width), np.float32)
+    index[rows, slot] = cols
+    weight[rows, slot] = values
     return index, weight
 
 

@@ -811,7 +811,7 @@ def display_generic(
 @njit(parallel=True, **_JIT)
 def rgb8_to_padded(rgb, padded):
     """(H, W, 3) uint8 into the interior of a (3, H + 2, W + 2) float image in [0, 1]
-    (``TemporalUpscaler._sharpen_output``'s input; the RCAS kernel fills the border)."""
+    (``TemporalUpscaler._finish_output``'s input; the RCAS kernel fills the border)."""
     h, w = rgb.shape[0], rgb.shape[1]
     k = F32(1.0 / 255.0)
     for y in prange(h):
@@ -824,22 +824,33 @@ def rgb8_to_padded(rgb, padded):
 @njit(parallel=True, **_JIT)
 def rgb8_box_3x3(color, lo, hi):
     """Per render pixel and channel, the min and max of the (h, w, 3) uint8 colour over
-    its 3x3 neighbourhood, edges replicated (``ops.box_3x3``), into ``lo`` and ``hi``."""
+    its 3x3 neighbourhood, edges replicated (``ops.box_3x3``), into ``lo`` and ``hi``
+    (C-contiguous). Separable: the min and max of three rows, then of three
+    neighbouring pixels (3 values apart in a flat row), so both loops vectorize."""
     h, w = color.shape[0], color.shape[1]
+    n = 3 * w
     for y in prange(h):
-        y0, y1 = max(y - 1, 0), min(y + 1, h - 1)
-        for x in range(w):
-            x0, x1 = max(x - 1, 0), min(x + 1, w - 1)
-            for c in range(3):
-                mn = color[y, x, c]
-                mx = mn
-                for yy in range(y0, y1 + 1):
-                    for xx in range(x0, x1 + 1):
-                        v = color[yy, xx, c]
-                        mn = min(mn, v)
-                        mx = max(mx, v)
-                lo[y, x, c] = mn
-                hi[y, x, c] = mx
+        up, mid, down = (
+            color[max(y - 1, 0)].reshape(-1),
+            color[y].reshape(-1),
+            color[min(y + 1, h - 1)].reshape(-1),
+        )
+        col_lo = np.empty(n + 6, np.uint8)  # one replicated pixel on each side
+        col_hi = np.empty(n + 6, np.uint8)
+        for k in range(n):
+            col_lo[k + 3] = min(min(up[k], mid[k]), down[k])
+            col_hi[k + 3] = max(max(up[k], mid[k]), down[k])
+        for c in range(3):
+            col_lo[c] = col_lo[c + 3]
+            col_hi[c] = col_hi[c + 3]
+            col_lo[n + 3 + c] = col_lo[n + c]
+            col_hi[n + 3 + c] = col_hi[n + c]
+        row_lo, row_hi = lo[y].reshape(-1), hi[y].reshape(-1)
+        left_lo, right_lo, centre_lo = col_lo[0:n], col_lo[6 : n + 6], col_lo[3 : n + 3]
+        left_hi, right_hi, centre_hi = col_hi[0:n], col_hi[6 : n + 6], col_hi[3 : n + 3]
+        for k in range(n):
+            row_lo[k] = min(min(left_lo[k], centre_lo[k]), right_lo[k])
+            row_hi[k] = max(max(left_hi[k], centre_hi[k]), right_hi[k])
 
 
 @njit(parallel=True, **_JIT)
