@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from server.game.render.transforms import jitter_offset, jitter_phase_count
-from upscalers.back_projection import AxisTaps, axis_taps, back_project, predict
+from upscalers.back_projection import AxisTaps, axis_taps, back_project, predict, regular_2x
 
 
 def _dense(index: np.ndarray, weight: np.ndarray, n_cols: int) -> np.ndarray:
@@ -108,3 +108,27 @@ def test_steps_over_the_jitter_sequence_recover_the_detail_the_boxes_hide(step: 
     accumulated = _psnr(torch.stack(spread).mean(0), truth)
     projected = _psnr(history, truth)
     assert projected > accumulated + 3.0, f"{projected:.1f} dB against {accumulated:.1f} dB"
+
+
+@pytest.mark.parametrize("n_render", [4, 5, 41, 640])
+@pytest.mark.parametrize("jitter", [-0.5, -0.375, 0.0, 0.125, 0.49])
+def test_the_2x_pattern_is_the_tables_away_from_the_edges(n_render: int, jitter: float) -> None:
+    """The numba kernel reads the interior of a 2x row through ``regular_2x``: it must say
+    exactly what the tables say there, and cover all but a pixel or two at each edge."""
+    taps = axis_taps(n_render, 2 * n_render, jitter)
+    reg = regular_2x(taps)
+    assert reg is not None
+    forward = _dense(taps.forward_index, taps.forward_weight, 2 * n_render)
+    back = _dense(taps.back_index, taps.back_weight, n_render)
+    for r in range(reg.r_lo, reg.r_hi):
+        row = np.zeros(2 * n_render)
+        row[2 * r + reg.base + np.arange(len(reg.forward))] = reg.forward
+        np.testing.assert_array_equal(forward[r], row)
+    for q in range(reg.q_lo, reg.q_hi):
+        for a in (0, 1):
+            row = np.zeros(n_render)
+            np.add.at(row, q + reg.offsets[a], reg.back[a])
+            np.testing.assert_array_equal(back[2 * q + a], row)
+    assert reg.r_lo <= 2 and reg.r_hi >= n_render - 2
+    assert reg.q_lo <= 2 and reg.q_hi >= n_render - 2
+    assert regular_2x(axis_taps(n_render, 3 * n_render, jitter)) is None

@@ -73,7 +73,7 @@ def axis_taps(n_render: int, n_display: int, jitter: float) -> AxisTaps:
     cols = np.clip(k, 0, n_display - 1).astype(np.int64)[overlap > 0.0]
     # Parts clipped onto the same edge pixel add up: one entry per (row, column).
     pairs, which = np.unique(rows * n_display + cols, return_inverse=True)
-    coverage = np.bincount(which, weights=overlap[overlap > 0.0] / scale)
+    coverage = np.bincount(which, weights=overlap[overlap > 0.0] / scale).astype(np.float64)
     rows, cols = pairs // n_display, pairs % n_display
     forward_index, forward_weight = _rows_as_taps(rows, cols, coverage, n_render)
     # A display pixel no footprint covers (the last one at a jitter of -0.5, where every
@@ -87,6 +87,80 @@ def axis_taps(n_render: int, n_display: int, jitter: float) -> AxisTaps:
         n_display,
     )
     return AxisTaps(forward_index, forward_weight, back_index, back_weight)
+
+
+@dataclass(frozen=True)
+class Regular2x:
+    """At 2x, away from the edges every render pixel's footprint has the same taps and
+    every display pixel of a parity the same back taps: render column r reads display
+    columns 2 r + base + t (t < len(forward)) for r in [r_lo, r_hi); display column 2 q + a
+    reads samples q + offsets[a, u] for q in [q_lo, q_hi). The same terms in the same
+    order as the tables (a shorter parity is padded with weight 0), so a kernel can use
+    contiguous runs there and the tables elsewhere."""
+
+    base: int
+    forward: F32Array  # (n,)
+    r_lo: int
+    r_hi: int
+    offsets: I64Array  # (2, m)
+    back: F32Array  # (2, m)
+    q_lo: int
+    q_hi: int
+
+
+def regular_2x(taps: AxisTaps) -> Regular2x | None:
+    """The interior pattern of a 2x axis's tables; None for any other scale."""
+    fi, fw = taps.forward_index, taps.forward_weight
+    bi, bw = taps.back_index, taps.back_weight
+    n_render, n_display = fi.shape[0], bi.shape[0]
+    if n_display != 2 * n_render or n_render < 4:
+        return None
+    mid = n_render // 2
+    n = int(np.count_nonzero(fw[mid]))
+    base = int(fi[mid, 0]) - 2 * mid
+    forward = fw[mid, :n].copy()
+    r = np.arange(n_render)
+    fits = (
+        (np.count_nonzero(fw, axis=1) == n)
+        & np.all(fi[:, :n] == 2 * r[:, None] + base + np.arange(n)[None, :], axis=1)
+        & np.all(fw[:, :n] == forward[None, :], axis=1)
+    )
+    r_lo, r_hi = _run_around(fits, mid)
+    q = np.arange(n_render)
+    counts = [int(np.count_nonzero(bw[2 * mid + a])) for a in (0, 1)]
+    m = max(counts)
+    offsets = np.zeros((2, m), np.int64)
+    back = np.zeros((2, m), np.float32)
+    q_fits = np.ones(n_render, bool)
+    for a in (0, 1):
+        k = counts[a]
+        offsets[a, :k] = bi[2 * mid + a, :k] - mid
+        back[a, :k] = bw[2 * mid + a, :k]
+        rows = 2 * q + a
+        q_fits &= (
+            (np.count_nonzero(bw[rows], axis=1) == k)
+            & np.all(bi[rows, :k] == q[:, None] + offsets[a, :k][None, :], axis=1)
+            & np.all(bw[rows, :k] == back[a, :k][None, :], axis=1)
+        )
+    q_lo, q_hi = _run_around(q_fits, mid)
+    return Regular2x(base, forward, r_lo, r_hi, offsets, back, q_lo, q_hi)
+
+
+@lru_cache(maxsize=512)
+def cached_regular_2x(n_render: int, n_display: int, jitter: float) -> Regular2x | None:
+    """``regular_2x`` of ``cached_axis_taps`` with the same arguments, kept the same way."""
+    return regular_2x(cached_axis_taps(n_render, n_display, jitter))
+
+
+def _run_around(fits: npt.NDArray[np.bool_], mid: int) -> tuple[int, int]:
+    """[lo, hi) of the run of True around ``mid``; empty if ``mid`` itself is False."""
+    if not fits[mid]:
+        return 0, 0
+    misses = np.flatnonzero(~fits)
+    before, after = misses[misses < mid], misses[misses > mid]
+    lo = int(before[-1]) + 1 if len(before) else 0
+    hi = int(after[0]) if len(after) else len(fits)
+    return lo, hi
 
 
 @lru_cache(maxsize=512)

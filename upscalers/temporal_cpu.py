@@ -28,7 +28,12 @@ from server.frames.frame import RenderFrame, Size
 from upscalers import fsr1_cpu_kernels as fsr1_kernels
 from upscalers import temporal_cpu_kernels as kernels
 from upscalers import temporal_ops as ops
-from upscalers.back_projection import cached_axis_taps
+from upscalers.back_projection import (
+    AxisTaps,
+    Regular2x,
+    cached_axis_taps,
+    cached_regular_2x,
+)
 from upscalers.fsr1_easu import Easu
 
 if TYPE_CHECKING:
@@ -39,6 +44,7 @@ I64Array = npt.NDArray[np.int64]
 _CPU = torch.device("cpu")
 _MAX_CACHED_PHASES = 128  # more than the longest jitter sequence (72 phases at 3x)
 _MAX_KEPT_OUTPUTS = 2
+_NO_TAPS = np.zeros(0, np.float32)  # bp_predict_x without a pattern
 
 
 @dataclass(frozen=True)
@@ -98,6 +104,11 @@ def supports(render: Size, display: Size) -> bool:
     exact below 2^24 pixels (beyond 5120x3240)."""
     limit = kernels.MAX_PIXELS
     return render.width * render.height < limit and display.width * display.height < limit
+
+
+def _transposed(table: npt.NDArray[Any]) -> npt.NDArray[Any]:
+    """An x table as the kernels take it: (taps, n), contiguous."""
+    return np.ascontiguousarray(table.T)
 
 
 def _f32(values: torch.Tensor) -> F32Array:
@@ -211,12 +222,8 @@ class HostTemporal:
             big_w, big_h = self.display
             tx = cached_axis_taps(w, big_w, jit[0])
             ty = cached_axis_taps(h, big_h, jit[1])
-            kernels.back_project(
-                self._spare, self._buf.raw, tx.forward_index.T.copy(), tx.forward_weight.T.copy(),
-                ty.forward_index, ty.forward_weight, tx.back_index.T.copy(),
-                tx.back_weight.T.copy(), ty.back_index, ty.back_weight,
-                np.float32(p.back_projection), self._across, self._error, out,
-            )  # fmt: skip
+            reg = cached_regular_2x(w, big_w, jit[0]) if self.scale == 2 else None
+            self._back_project(tx, ty, reg, np.float32(p.back_projection), out)
         stops = p.output_sharpness
         if stops is not None:
             # TemporalUpscaler._finish_output: the same RCAS kernel as FSR 1's.
@@ -229,6 +236,35 @@ class HostTemporal:
             color = np.ascontiguousarray(frame.color, dtype=np.uint8)
             kernels.rgb8_box_3x3(color, self._box_lo, self._box_hi)
             kernels.clamp_rgb8(out, self._box_lo, self._box_hi, self._near_x, self._near_y)
+
+    def _back_project(
+        self,
+        tx: AxisTaps,
+        ty: AxisTaps,
+        reg: Regular2x | None,
+        step: np.float32,
+        out: npt.NDArray[np.uint8],
+    ) -> None:
+        """``back_projection.back_project`` on the new history (the spare buffer) with the
+        kernels, then the history into ``out``; the column passes follow the tables'
+        pattern ``reg`` at 2x where there is one."""
+        hist, across = self._spare, self._across
+        fx_i, fx_w = _transposed(tx.forward_index), _transposed(tx.forward_weight)
+        bx_i, bx_w = _transposed(tx.back_index), _transposed(tx.back_weight)
+        if reg is None:
+            kernels.bp_predict_x(hist, fx_i, fx_w, 0, _NO_TAPS, 0, 0, across)
+        else:
+            kernels.bp_predict_x(
+                hist, fx_i, fx_w, reg.base, reg.forward, reg.r_lo, reg.r_hi, across
+            )
+        kernels.bp_error(self._buf.raw, ty.forward_index, ty.forward_weight, across, self._error)
+        kernels.bp_back_y(self._error, ty.back_index, ty.back_weight, across)
+        if reg is None:
+            kernels.bp_back_x(hist, bx_i, bx_w, step, across, out)
+        else:
+            kernels.bp_back_x_2x(
+                hist, bx_i, bx_w, reg.offsets, reg.back, reg.q_lo, reg.q_hi, step, across, out
+            )
 
     def _output(self) -> npt.NDArray[np.uint8]:
         """An (H, W, 3) uint8 array nobody else holds: a kept one whose last result was let

@@ -866,30 +866,47 @@ def clamp_rgb8(out, lo, hi, near_x, near_y):
                 out[y, x, c] = min(max(out[y, x, c], lo[i, j, c]), hi[i, j, c])
 
 
+# Back-projection (``back_projection.back_project``), four passes over the frame: the
+# prediction along the columns, then along the rows with the error; the error back along
+# the rows, then along the columns, added to the history with the output's conversion.
+# Every sum runs over the taps in order from 0, one tap for a whole row at a time, so
+# the row loops vectorize; the x tables come transposed, (taps, n). At 2x the interior of
+# a row follows one pattern (``back_projection.Regular2x``): there the column passes read
+# and write contiguous runs instead of gathering through the tables, which they keep for
+# the few edge pixels. The terms and their order are those of the tables, so the result
+# is the same (a table's padding adds 0).
+
+
 @njit(parallel=True, **_JIT)
-def back_project(
-    hist, raw, fx_i, fx_w, fy_i, fy_w, bx_i, bx_w, by_i, by_w, step, across, error, out
-):
-    """One back-projection step on the (3, H, W) history in place
-    (``back_projection.back_project``), then the history as uint8 sRGB into ``out``.
-    ``raw``: the frame's padded (3, h, w + 2) YCoCg; ``across`` (3, H, w) and ``error``
-    (3, h, w): scratch. The x tables come transposed, (taps, n): a tap's weights of
-    neighbouring pixels are neighbours in memory. Four passes: the prediction along the
-    columns, along the rows and the error; the error back along the rows (into
-    ``across``, free by then) and along the columns, added to the history row by row.
-    Each sum runs over the taps in order from 0, one tap for a whole row at a time, so
-    the row loops vectorize (the torch path sums the same terms in the same order)."""
-    big_h, big_w = hist.shape[1], hist.shape[2]
-    h, w = error.shape[1], error.shape[2]
-    n_fx, n_fy, n_bx, n_by = fx_i.shape[0], fy_i.shape[1], bx_i.shape[0], by_i.shape[1]
+def bp_predict_x(hist, fx_i, fx_w, base, reg_w, r_lo, r_hi, across):
+    """(3, H, w) prediction along the columns; the pattern covers [r_lo, r_hi) (none if
+    empty): render column r reads display columns 2 r + base + t."""
+    big_h, w = hist.shape[1], across.shape[2]
+    n_fx, n_reg = fx_i.shape[0], reg_w.shape[0]
     for y in prange(big_h):
         for c in range(3):
             src, dst = hist[c, y], across[c, y]
             dst[:] = F32(0.0)
             for t in range(n_fx):
                 idx, wt = fx_i[t], fx_w[t]
-                for r in range(w):
+                for r in range(r_lo):
                     dst[r] += src[idx[r]] * wt[r]
+                for r in range(r_hi, w):
+                    dst[r] += src[idx[r]] * wt[r]
+            if r_hi > r_lo:
+                inner = dst[r_lo:r_hi]
+                for t in range(n_reg):
+                    seg = src[2 * r_lo + base + t : 2 * r_hi + base + t]
+                    wt = reg_w[t]
+                    for r in range(r_hi - r_lo):
+                        inner[r] += seg[2 * r] * wt
+
+
+@njit(parallel=True, **_JIT)
+def bp_error(raw, fy_i, fy_w, across, error):
+    """(3, h, w) error: the padded samples ``raw`` minus the prediction along the rows."""
+    h, w = error.shape[1], error.shape[2]
+    n_fy = fy_i.shape[1]
     for i in prange(h):
         for c in range(3):
             dst, seen = error[c, i], raw[c, i]
@@ -900,15 +917,33 @@ def back_project(
                     dst[r] += row[r] * wt
             for r in range(w):
                 dst[r] = seen[r + 1] - dst[r]
+
+
+@njit(parallel=True, **_JIT)
+def bp_back_y(error, by_i, by_w, across):
+    """The error back along the rows, into ``across`` (3, H, w)."""
+    big_h, w = across.shape[1], across.shape[2]
+    n_by = by_i.shape[1]
     for y in prange(big_h):
-        acc = np.empty(big_w, np.float32)
         for c in range(3):
-            down, row = across[c, y], hist[c, y]
+            down = across[c, y]
             down[:] = F32(0.0)
             for u in range(n_by):
                 src, wt = error[c, by_i[y, u]], by_w[y, u]
                 for r in range(w):
                     down[r] += src[r] * wt
+
+
+@njit(parallel=True, **_JIT)
+def bp_back_x(hist, bx_i, bx_w, step, across, out):
+    """Any scale: the error back along the columns, ``step`` of it added to the history,
+    and the history as uint8 sRGB into ``out``."""
+    big_h, big_w = hist.shape[1], hist.shape[2]
+    n_bx = bx_i.shape[0]
+    for y in prange(big_h):
+        acc = np.empty(big_w, np.float32)
+        for c in range(3):
+            down, row = across[c, y], hist[c, y]
             acc[:] = F32(0.0)
             for u in range(n_bx):
                 idx, wt = bx_i[u], bx_w[u]
@@ -916,4 +951,46 @@ def back_project(
                     acc[x] += down[idx[x]] * wt[x]
             for x in range(big_w):
                 row[x] = fma32(step, acc[x], row[x])
+        _rgb_row(hist, y, out)
+
+
+@njit(parallel=True, **_JIT)
+def bp_back_x_2x(hist, bx_i, bx_w, offsets, reg_w, q_lo, q_hi, step, across, out):
+    """``bp_back_x`` at 2x: display column 2 q + a of the pattern's [q_lo, q_hi) reads the
+    error at q + offsets[a, u]; the two sub-columns are summed planar and interleaved
+    in the update."""
+    big_h, big_w = hist.shape[1], hist.shape[2]
+    w = big_w // 2
+    n_bx, n_reg = bx_i.shape[0], offsets.shape[1]
+    for y in prange(big_h):
+        even = np.empty(w, np.float32)
+        odd = np.empty(w, np.float32)
+        for c in range(3):
+            down, row = across[c, y], hist[c, y]
+            even[:] = F32(0.0)
+            odd[:] = F32(0.0)
+            if q_hi > q_lo:
+                inner_even, inner_odd = even[q_lo:q_hi], odd[q_lo:q_hi]
+                for u in range(n_reg):
+                    seg = down[q_lo + offsets[0, u] : q_hi + offsets[0, u]]
+                    wt = reg_w[0, u]
+                    for q in range(q_hi - q_lo):
+                        inner_even[q] += seg[q] * wt
+                    seg = down[q_lo + offsets[1, u] : q_hi + offsets[1, u]]
+                    wt = reg_w[1, u]
+                    for q in range(q_hi - q_lo):
+                        inner_odd[q] += seg[q] * wt
+            for x in range(big_w):
+                if 2 * q_lo <= x < 2 * q_hi:
+                    continue  # the pattern's
+                v = F32(0.0)
+                for u in range(n_bx):
+                    v += down[bx_i[u, x]] * bx_w[u, x]
+                if x % 2 == 0:
+                    even[x // 2] = v
+                else:
+                    odd[x // 2] = v
+            for q in range(w):
+                row[2 * q] = fma32(step, even[q], row[2 * q])
+                row[2 * q + 1] = fma32(step, odd[q], row[2 * q + 1])
         _rgb_row(hist, y, out)
