@@ -129,6 +129,13 @@ def test_supertux_plays_and_follows_the_keys(supertux: Live, browser: Any) -> No
         finally:
             page.keyboard.up("ArrowRight")
         walk_change = float(np.abs(floor(walked) - floor(idle)).mean())
+        # After the walk the picture keeps changing for a while (Tux slides on, the camera
+        # follows) and each change costs the encoder about a second of climbing quality at
+        # 1.5 Mbit/s: six snapshots 150 ms apart right after the key read 32.8, 33.2, 34.5,
+        # 35.8, 36.1, 35.3 dB (a median under the bar in 1 local run of 2 and in a CI run),
+        # 1.5 s after it a median of 34.9 once, 3 s after it 36.8-37.3 in 3 runs. The check
+        # is that the canvas shows the server's frame, so it waits for the picture to settle.
+        page.wait_for_timeout(3000)
         level_db = same_frame_db(live, page)
         s = stats(page)
         photon = s["inputToPhoton"]
@@ -137,7 +144,7 @@ def test_supertux_plays_and_follows_the_keys(supertux: Live, browser: Any) -> No
             f"{statistics.median(level_db):.1f} dB (same frame, median of 6); Enter -> level "
             f"{reaction_s * 1000:.0f} ms on the server; floor change idle {idle_change:.1f} "
             f"vs right arrow {walk_change:.1f}; input-to-photon p50 {photon['p50']} ms p95 "
-            f"{photon['p95']} ms ({len(photon['samples'])} presses)"
+            f"{photon['p95']} ms ({len(photon['samples'])} presses); level dB {level_db}"
         )
         assert statistics.median(intro_db) >= SAME_FRAME_DB, intro_db
         assert statistics.median(level_db) >= SAME_FRAME_DB, level_db
