@@ -17,11 +17,12 @@ from server.train.dataset import DatasetSpec, generate
 from upscalers import metrics, registry
 from upscalers.neural import conv_flops, load
 from upscalers.neural.features import (
+    base_phases,
     bilinear_phases,
     feature_channels,
     warp_history,
 )
-from upscalers.neural.network import build_model, predict
+from upscalers.neural.network import base_of, build_model, load_checkpoint, predict
 from upscalers.neural.upscaler import NeuralUpscaler, UNetUpscaler
 from upscalers.output import to_uint8
 
@@ -84,6 +85,56 @@ def test_jittered_base_samples_where_the_frame_sampled() -> None:
         torch.testing.assert_close(out[n : n + 1, :, 1:-1, 1:-1], ref[..., 1:-1, 1:-1])
     # Jitter really moves it: the unjittered base differs.
     assert not torch.allclose(bilinear_phases(color, 2), bilinear_phases(color, 2, jitter))
+
+
+def test_cubic_base_reproduces_quadratics_where_the_frame_sampled() -> None:
+    """Catmull-Rom reproduces polynomials up to degree 2: samples of a quadratic taken
+    at i + 0.5 + j must come back as the quadratic at the display centres (interior;
+    edges are clamped), for any jitter. Bilinear cannot (its error is the curvature)."""
+    jitter = torch.tensor([[0.3, -0.45], [-0.2, 0.1]])
+    h, w = 12, 14
+
+    def quadratic(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        return 0.2 + 0.01 * x + 0.02 * y + 0.003 * x * x - 0.002 * x * y + 0.004 * y * y
+
+    for n in range(2):
+        jx, jy = float(jitter[n, 0]), float(jitter[n, 1])
+        ys, xs = torch.meshgrid(torch.arange(h) + 0.5 + jy, torch.arange(w) + 0.5 + jx,
+                                indexing="ij")  # fmt: skip
+        color = quadratic(xs, ys).expand(1, 3, h, w).contiguous()
+        dy, dx = torch.meshgrid((torch.arange(2 * h) + 0.5) / 2, (torch.arange(2 * w) + 0.5) / 2,
+                                indexing="ij")  # fmt: skip
+        truth = quadratic(dx, dy).expand(1, 3, 2 * h, 2 * w)
+        inner = (..., slice(6, -6), slice(6, -6))
+        for base, exact in (("cubic", True), ("bilinear", False)):
+            out = F.pixel_shuffle(base_phases(color, 2, jitter[n : n + 1], base), 2)
+            err = (out - truth)[inner].abs().max().item()
+            assert (err < 1e-5) == exact, (base, err)
+    with pytest.raises(ValueError, match="base"):
+        base_phases(color, 2, None, "lanczos")
+
+
+def test_checkpoints_keep_their_base(tmp_path: Path) -> None:
+    """A network trained on one base must upscale on it: the checkpoint records it, and
+    a checkpoint from before the field was written loads as bilinear."""
+    from upscalers.neural.network import save_checkpoint
+
+    model = build_model("unet", 2, base="cubic")
+    save_checkpoint(tmp_path / "c.pt", "unet", model, 2, {})
+    assert base_of(load_checkpoint(tmp_path / "c.pt")[1]) == "cubic"
+    ckpt = torch.load(tmp_path / "c.pt", weights_only=True)
+    del ckpt["base"]
+    torch.save(ckpt, tmp_path / "old.pt")
+    assert base_of(load_checkpoint(tmp_path / "old.pt")[1]) == "bilinear"
+    # Untrained, the network is its base: cubic here, not bilinear.
+    color = torch.rand(1, 3, 8, 8)
+    feats = torch.zeros(1, feature_channels(2), 8, 8)
+    feats[:, :3] = color
+    out = predict(model, feats, 2)
+    bilinear = F.interpolate(color, scale_factor=2.0, mode="bilinear", align_corners=False)
+    assert not torch.allclose(out, bilinear.clamp(0, 1), atol=1e-3)
+    with pytest.raises(ValueError, match="base"):
+        build_model("unet", 2, base="nearest")
 
 
 def test_warp_history_order_and_shift() -> None:
@@ -312,6 +363,31 @@ def test_train_end_to_end_is_reproducible(tmp_path: Path) -> None:
     up = UNetUpscaler(device="cpu", weights=tmp_path / "a.pt")
     frame = Renderer("static", Size(32, 24), seed=0).render(0, 0.0)
     assert torch.isfinite(up.upscale(frame, Size(64, 48))).all()
+
+
+def test_train_from_init_fine_tunes_those_weights(tmp_path: Path) -> None:
+    """--init starts from a checkpoint (another network or scale is refused), keeps its
+    base unless --base moves it, and says where it started in the meta."""
+    from server.cli import main
+
+    _train(tmp_path, "a.pt")
+    common = ["--steps", "1", "--sequences", "1", "--render-size", "32x24", "--crop", "16",
+              "--batch", "2", "--lr", "1e-9", "--data-dir", str(tmp_path / "data")]  # fmt: skip
+    assert main(["train", "--model", "unet", *common, "--init", str(tmp_path / "a.pt"),
+                 "--base", "cubic", "--out", str(tmp_path / "b.pt")]) == 0  # fmt: skip
+    a = torch.load(tmp_path / "a.pt", weights_only=True)
+    b = torch.load(tmp_path / "b.pt", weights_only=True)
+    # One step at lr 1e-9 from a's weights: still a's weights (to float16), on cubic.
+    assert all(torch.allclose(a["state_dict"][k].float(), v.float(), atol=1e-3)
+               for k, v in b["state_dict"].items())  # fmt: skip
+    assert b["base"] == "cubic" and b["meta"]["init"] == str(tmp_path / "a.pt")
+    assert b["meta"]["init_command"] == a["meta"]["command"]
+    for bad in (["--model", "unetpp", "--init", str(tmp_path / "a.pt")],
+                ["--model", "unet", "--init", str(tmp_path / "missing.pt")]):  # fmt: skip
+        with pytest.raises(SystemExit) as exc:
+            main(["train", *bad, *common, "--out", str(tmp_path / "x.pt")])
+        assert "--init" in str(exc.value.code)
+    assert not (tmp_path / "x.pt").exists()
 
 
 def test_dataset_mip_bias_is_part_of_its_key_and_of_its_renders() -> None:

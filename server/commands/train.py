@@ -15,12 +15,16 @@ import shlex
 import sys
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
+    from torch import nn
+
     from server.frames.frame import Size
 
 DEFAULT_DATA_DIR = Path.home() / ".cache" / "upcast"
+# The upsampling under a new network's residual (upscalers.neural.features.BASES).
+DEFAULT_BASE = "bilinear"
 
 
 def _positive_int(text: str) -> int:
@@ -63,6 +67,27 @@ def _mip_bias(text: str, render: Size, scale: int) -> float:
         raise SystemExit(str(e)) from None
     # Training renders are all jittered: the game's choice for those.
     return game_lod_bias(True, scale) if bias is None else bias
+
+
+def _initial_model(
+    name: str, scale: int, init: Path | None, base: str | None
+) -> tuple[nn.Module, dict[str, Any]]:
+    """The network training starts from: untrained (residual zero) on ``base``, or the
+    weights of ``init`` with their meta, refused where they are another network or
+    scale; ``base`` (None: the checkpoint's own) moves them onto another upsampling."""
+    from upscalers.neural.network import build_model, load_checkpoint, set_base
+
+    if init is None:
+        return build_model(name, scale, base=base or DEFAULT_BASE), {}
+    try:
+        found, model, found_scale, meta = load_checkpoint(init)
+    except (FileNotFoundError, ValueError) as e:
+        raise SystemExit(f"--init: {e}") from None
+    if found != name or found_scale != scale:
+        raise SystemExit(f"--init: {init} holds {found} at {found_scale}x, not {name} at {scale}x")
+    if base is not None:
+        set_base(model, base)
+    return model, meta
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -151,6 +176,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--scenes", default="all", help="comma-separated scenes to render (default all)"
     )
+    parser.add_argument(
+        "--init",
+        type=Path,
+        default=None,
+        metavar="CHECKPOINT",
+        help="start from these weights instead of the untrained network (fine-tuning: "
+        "pair with a lower --lr); the checkpoint must be the same --model at 2x",
+    )
+    parser.add_argument(
+        "--base",
+        choices=("bilinear", "cubic"),
+        default=None,
+        help="the upsampling the network's residual is added to: bilinear or cubic "
+        f"(Catmull-Rom); default: --init's own, else {DEFAULT_BASE}",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -167,7 +207,7 @@ def run(args: argparse.Namespace) -> int:
     from upscalers.neural.flops import conv_flops
     from upscalers.neural.network import (
         WEIGHTS_DIR,
-        build_model,
+        base_of,
         save_checkpoint,
         with_memory_format,
     )
@@ -219,7 +259,7 @@ def run(args: argparse.Namespace) -> int:
         raise SystemExit(f"--real-content: {e}") from None
     data_s = time.monotonic() - started
 
-    model = build_model(args.model, scale)
+    model, init_meta = _initial_model(args.model, scale, args.init, args.base)
     model = with_memory_format(model, torch.channels_last)
     cfg = TrainConfig(
         steps=args.steps,
@@ -252,6 +292,9 @@ def run(args: argparse.Namespace) -> int:
         "lr": cfg.lr,
         "cache_aware": cfg.cached_share,
         "fresh_start": cfg.fresh_share,
+        "init": None if args.init is None else str(args.init),
+        "init_command": init_meta.get("command"),
+        "base": base_of(model),
         "final_l1": result.final_loss,
         "final_l1_by_part": json.dumps(result.final_loss_by_part),
         "real_content": None if args.real_content is None else args.real_share,

@@ -2,7 +2,8 @@
 
 A checkpoint is a ``torch.save``d dict that ``torch.load(weights_only=True)``
 reads: ``format``, ``model`` (a name of ``MODELS``), ``widths``,
-``in_channels``, ``scale``, ``state_dict`` (float16 tensors: half the bytes, and
+``in_channels``, ``scale``, ``base`` (the upsampling under the residual; absent:
+bilinear), ``state_dict`` (float16 tensors: half the bytes, and
 the weights lose nothing measurable at 8-bit output) and ``meta`` (how it was
 trained: free-form strings and numbers for the model card).
 """
@@ -16,7 +17,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from upscalers.neural.features import bilinear_phases, feature_channels, jitter_of
+from upscalers.neural.features import BASES, base_phases, feature_channels, jitter_of
 from upscalers.neural.unet import UNet
 from upscalers.neural.unetpp import UNetPlusPlus
 
@@ -25,7 +26,12 @@ CHECKPOINT_FORMAT = 1
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 
 
-def build_model(name: str, scale: int = 2, widths: tuple[int, ...] | None = None) -> nn.Module:
+def build_model(
+    name: str, scale: int = 2, widths: tuple[int, ...] | None = None, base: str = "bilinear"
+) -> nn.Module:
+    """An untrained network whose output is the upsampling ``base`` (features.BASES)."""
+    if base not in BASES:
+        raise ValueError(f"unknown base {base!r}; allowed: {', '.join(BASES)}")
     try:
         cls = MODELS[name]
     except KeyError:
@@ -44,7 +50,22 @@ def build_model(name: str, scale: int = 2, widths: tuple[int, ...] | None = None
     nn.init.zeros_(last.weight)
     if last.bias is not None:
         nn.init.zeros_(last.bias)
+    set_base(model, base)
     return model
+
+
+def base_of(model: nn.Module) -> str:
+    """The upsampling the network's residual is added to."""
+    return str(getattr(model, "upsampling_base", "bilinear"))
+
+
+def set_base(model: nn.Module, base: str) -> None:
+    """Change the upsampling under the residual (fine-tuning a network onto another
+    base); the weights stay, so the output changes until it is trained again."""
+    if base not in BASES:
+        raise ValueError(f"unknown base {base!r}; allowed: {', '.join(BASES)}")
+    # A plain attribute (torch's stubs type Module attributes as tensors or modules).
+    object.__setattr__(model, "upsampling_base", base)
 
 
 def save_checkpoint(
@@ -59,6 +80,7 @@ def save_checkpoint(
             "widths": list(getattr(model, "widths", ())),
             "in_channels": feature_channels(scale),
             "scale": scale,
+            "base": base_of(model),
             "state_dict": state,
             "meta": meta,
         },
@@ -78,7 +100,11 @@ def load_checkpoint(path: Path) -> tuple[str, nn.Module, int, dict[str, Any]]:
     if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
         raise ValueError(f"{path}: not an upcast network checkpoint (format {CHECKPOINT_FORMAT})")
     name, scale = str(ckpt["model"]), int(ckpt["scale"])
-    model = build_model(name, scale, tuple(int(w) for w in ckpt["widths"]) or None)
+    # Checkpoints from before the base was recorded were all trained on bilinear.
+    base = str(ckpt.get("base", "bilinear"))
+    if base not in BASES:
+        raise ValueError(f"{path}: unknown upsampling base {base!r}")
+    model = build_model(name, scale, tuple(int(w) for w in ckpt["widths"]) or None, base)
     model.load_state_dict({k: v.float() for k, v in ckpt["state_dict"].items()})
     model.eval()
     return name, model, scale, dict(ckpt.get("meta", {}))
@@ -101,18 +127,19 @@ def local_range(color: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 
 def predict(model: nn.Module, features: torch.Tensor, scale: int) -> torch.Tensor:
     """Features (N, C, h, w) -> image (N, 3, s h, s w): the network's residual on top of
-    a bilinear upsampling of the colour from where its samples really lay (jitter
-    compensated), clamped to the 3x3 range of the frame's own colour around each
-    display pixel's render pixel, as the temporal upscaler's output is: detail
-    without a halo or ringing past the input's local range (the unclamped game-only
-    U-Net took a 64|191 step to 57..197). Training goes through the same clamp.
+    its base upsampling (bilinear or Catmull-Rom, ``base_of``) of the colour from where
+    its samples really lay (jitter compensated), clamped to the 3x3 range of the
+    frame's own colour around each display pixel's render pixel, as the temporal
+    upscaler's output is: detail without a halo or ringing past the input's local
+    range (the unclamped game-only U-Net took a 64|191 step to 57..197). Training goes
+    through the same clamp.
     Any h, w (padded to the network's multiple, cropped back)."""
     h, w = features.shape[-2:]
     multiple = int(getattr(model, "multiple", 1))
     x = pad_to_multiple(features, multiple)
     residual = model(x)[..., :h, :w]
     color = features[:, :3]
-    phases = bilinear_phases(color, scale, jitter_of(features)) + residual
+    phases = base_phases(color, scale, jitter_of(features), base_of(model)) + residual
     # Viewed as (N, 3, s s, h, w), every sub-pixel phase of a render pixel takes that
     # pixel's range by broadcasting (pixel_shuffle order: channel c s s + phase).
     lo, hi = local_range(color)
