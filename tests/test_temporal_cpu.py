@@ -23,6 +23,7 @@ from server.frames.frame import FrameFlags, RenderFrame, Size
 from server.game.render.transforms import jitter_phase_count
 from tests.test_temporal import DISPLAY, RENDER, pattern_frame, poisoned
 from upscalers.temporal import TemporalUpscaler
+from upscalers.temporal_params import TemporalParams
 
 MAX_U8_DIFF = 1
 MAX_MEAN_U8_DIFF = 0.01
@@ -206,3 +207,30 @@ def test_the_colour_box_kernel_is_the_torch_box(h: int, w: int) -> None:
     ref_lo, ref_hi = ops.box_3x3(torch.from_numpy(color).permute(2, 0, 1).float())
     assert np.array_equal(lo, ref_lo.permute(1, 2, 0).numpy().astype(np.uint8))
     assert np.array_equal(hi, ref_hi.permute(1, 2, 0).numpy().astype(np.uint8))
+
+
+def _half_moving_sequence(n: int = 5) -> list[RenderFrame]:
+    """The pattern moving on the left half only (motion zero on the right half)."""
+    frames = [pattern_frame(RENDER, i, motion=0.6) for i in range(n)]
+    for f in frames:
+        f.motion[:, RENDER.width // 2 :] = 0.0
+    return frames
+
+
+def test_moving_pixels_take_the_moving_step_on_both_backends() -> None:
+    """Back-projection's step is ``moving_back_projection`` where the (dilated) motion is
+    not zero and ``back_projection`` elsewhere: the backends agree on a half-moving frame,
+    and the moving step changes the moving half only."""
+    frames = _half_moving_sequence()
+    _run_both(frames, DISPLAY)
+    outs = []
+    for moving_step in (None, 0.8):
+        params = TemporalParams(back_projection=0.3, moving_back_projection=moving_step)
+        up = TemporalUpscaler(device="cpu", backend="numba", params=params)
+        for f in frames:
+            out = up.upscale(f, DISPLAY)
+        outs.append(out.int())
+    q = DISPLAY.width // 4
+    diff = (outs[0] - outs[1]).abs()
+    assert int(diff[..., :q].max()) > 0  # moving: another step
+    assert int(diff[..., 3 * q :].max()) == 0  # still: the same step, the same pixels

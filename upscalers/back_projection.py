@@ -208,14 +208,17 @@ def back_project(
     samples: torch.Tensor,
     taps_x: AxisTaps,
     taps_y: AxisTaps,
-    step: float,
+    step: float | torch.Tensor,
 ) -> None:
     """One step on the (3, H, W) history in place, towards explaining the (3, h, w)
-    samples (same colour space)."""
+    samples (same colour space); ``step`` a number or an (H, W) map of them."""
     error = samples - predict(history, taps_x, taps_y)
     # The error back to the display pixels, along the rows ((3, H, w)), then the columns.
     by = _weight(taps_y.back_weight, history).unsqueeze(-1)
     down = (error[:, _index(taps_y.back_index, history), :] * by).sum(2)
     bx = _weight(taps_x.back_weight, history)
     correction = (down[:, :, _index(taps_x.back_index, history)] * bx).sum(-1)
-    history.add_(correction, alpha=step)
+    if isinstance(step, torch.Tensor):
+        history.addcmul_(correction, step.to(history.dtype))
+    else:
+        history.add_(correction, alpha=step)

@@ -238,13 +238,28 @@ class TemporalUpscaler(Upscaler):
         step = p.back_projection
         if step is not None and not reset:
             work = history[0] if history.dtype == torch.float32 else history[0].float()
-            back_project(work, raw, *self._back_taps(render, display, jit), step)
+            taps = self._back_taps(render, display, jit)
+            back_project(work, raw, *taps, self._step_map(step, mv, display))
             if work.data_ptr() != history.data_ptr():
                 history[0].copy_(work)
         rgb8 = ops.ycocg_to_rgb8(history[0])
         # A reset frame is mostly EASU's start, sharp already: RCAS on top lost 0.3 dB
         # there on photographs, and it stays as it is.
         return rgb8 if reset else self._finish_output(rgb8, frame)
+
+    def _step_map(self, still: float, mv: torch.Tensor, display: Size) -> float | torch.Tensor:
+        """Back-projection's step: ``still`` everywhere, or an (H, W) map with
+        ``TemporalParams.moving_back_projection`` on display pixels whose render pixel
+        (nearest) has non-zero dilated motion ``mv`` (2, h, w)."""
+        moving_step = self.params.moving_back_projection
+        if moving_step is None or moving_step == still or not bool(mv.any()):
+            return still
+        _, h, w = mv.shape
+        moving = (mv[0] != 0.0) | (mv[1] != 0.0)
+        steps = torch.where(moving, moving_step, still).to(torch.float32)
+        iy = ops.nearest_index(display.height, h, mv.device)
+        ix = ops.nearest_index(display.width, w, mv.device)
+        return steps.index_select(0, iy).index_select(1, ix)
 
     def _back_taps(
         self, render: Size, display: Size, jit: tuple[float, float]

@@ -163,6 +163,7 @@ class HostTemporal:
         # Any other scale: the render pixel whose box, weight and motion each display pixel takes.
         self._near_x = ops.nearest_index(big_w, w, _CPU).numpy()
         self._near_y = ops.nearest_index(big_h, h, _CPU).numpy()
+        self._steps = np.empty((h, w), np.float32)  # back-projection's step per render pixel
 
     def reset(self) -> None:
         """Forget the history (the buffers are kept)."""
@@ -206,13 +207,17 @@ class HostTemporal:
         out = self._output()
         self._display_stage(phase, mode, out)
         if not reset:  # as TemporalUpscaler.upscale
-            self._finish_output(frame, jit, out)
+            self._finish_output(frame, jit, moving > 0, out)
         self._history, self._spare = self._spare, self._history
         self._has_history = True
         return torch.from_numpy(out).permute(2, 0, 1)
 
     def _finish_output(
-        self, frame: RenderFrame, jit: tuple[float, float], out: npt.NDArray[np.uint8]
+        self,
+        frame: RenderFrame,
+        jit: tuple[float, float],
+        any_moving: bool,
+        out: npt.NDArray[np.uint8],
     ) -> None:
         """Back-projection of the new history (in the spare buffer) and RCAS, as asked,
         and the clamp after either (``TemporalUpscaler._finish_output``)."""
@@ -223,7 +228,7 @@ class HostTemporal:
             tx = cached_axis_taps(w, big_w, jit[0])
             ty = cached_axis_taps(h, big_h, jit[1])
             reg = cached_regular_2x(w, big_w, jit[0]) if self.scale == 2 else None
-            self._back_project(tx, ty, reg, np.float32(p.back_projection), out)
+            self._back_project(tx, ty, reg, self._step_map(p.back_projection, any_moving), out)
         stops = p.output_sharpness
         if stops is not None:
             # TemporalUpscaler._finish_output: the same RCAS kernel as FSR 1's.
@@ -237,12 +242,24 @@ class HostTemporal:
             kernels.rgb8_box_3x3(color, self._box_lo, self._box_hi)
             kernels.clamp_rgb8(out, self._box_lo, self._box_hi, self._near_x, self._near_y)
 
+    def _step_map(self, still: float, any_moving: bool) -> npt.NDArray[np.float32]:
+        """Back-projection's step per render pixel (``TemporalUpscaler._step_map``):
+        ``moving_back_projection`` where the dilated motion is not zero."""
+        steps = self._steps
+        moving_step = self.params.moving_back_projection
+        if moving_step is None or not any_moving:
+            steps.fill(still)
+            return steps
+        d = self._buf.dilated
+        np.copyto(steps, np.where((d[0] != 0.0) | (d[1] != 0.0), moving_step, still))
+        return steps
+
     def _back_project(
         self,
         tx: AxisTaps,
         ty: AxisTaps,
         reg: Regular2x | None,
-        step: np.float32,
+        steps: npt.NDArray[np.float32],
         out: npt.NDArray[np.uint8],
     ) -> None:
         """``back_projection.back_project`` on the new history (the spare buffer) with the
@@ -260,11 +277,12 @@ class HostTemporal:
         kernels.bp_error(self._buf.raw, ty.forward_index, ty.forward_weight, across, self._error)
         kernels.bp_back_y(self._error, ty.back_index, ty.back_weight, across)
         if reg is None:
-            kernels.bp_back_x(hist, bx_i, bx_w, step, across, out)
+            kernels.bp_back_x(hist, bx_i, bx_w, steps, self._near_x, self._near_y, across, out)
         else:
             kernels.bp_back_x_2x(
-                hist, bx_i, bx_w, reg.offsets, reg.back, reg.q_lo, reg.q_hi, step, across, out
-            )
+                hist, bx_i, bx_w, reg.offsets, reg.back, reg.q_lo, reg.q_hi, steps,
+                self._near_y, across, out,
+            )  # fmt: skip
 
     def _output(self) -> npt.NDArray[np.uint8]:
         """An (H, W, 3) uint8 array nobody else holds: a kept one whose last result was let

@@ -935,13 +935,16 @@ def bp_back_y(error, by_i, by_w, across):
 
 
 @njit(parallel=True, **_JIT)
-def bp_back_x(hist, bx_i, bx_w, step, across, out):
-    """Any scale: the error back along the columns, ``step`` of it added to the history,
-    and the history as uint8 sRGB into ``out``."""
+def bp_back_x(hist, bx_i, bx_w, steps, near_x, near_y, across, out):
+    """Any scale: the error back along the columns, added to the history times the step
+    of the display pixel's nearest render pixel (``steps`` (h, w), ``near_x`` /
+    ``near_y`` the nearest render column / row of each display one), and the history as
+    uint8 sRGB into ``out``."""
     big_h, big_w = hist.shape[1], hist.shape[2]
     n_bx = bx_i.shape[0]
     for y in prange(big_h):
         acc = np.empty(big_w, np.float32)
+        step_row = steps[near_y[y]]
         for c in range(3):
             down, row = across[c, y], hist[c, y]
             acc[:] = F32(0.0)
@@ -950,21 +953,23 @@ def bp_back_x(hist, bx_i, bx_w, step, across, out):
                 for x in range(big_w):
                     acc[x] += down[idx[x]] * wt[x]
             for x in range(big_w):
-                row[x] = fma32(step, acc[x], row[x])
+                row[x] = fma32(step_row[near_x[x]], acc[x], row[x])
         _rgb_row(hist, y, out)
 
 
 @njit(parallel=True, **_JIT)
-def bp_back_x_2x(hist, bx_i, bx_w, offsets, reg_w, q_lo, q_hi, step, across, out):
+def bp_back_x_2x(hist, bx_i, bx_w, offsets, reg_w, q_lo, q_hi, steps, near_y, across, out):
     """``bp_back_x`` at 2x: display column 2 q + a of the pattern's [q_lo, q_hi) reads the
     error at q + offsets[a, u]; the two sub-columns are summed planar and interleaved
-    in the update."""
+    in the update, with the step of render column q (``steps`` (h, w); exact 2x: display
+    columns 2 q and 2 q + 1 are in render column q)."""
     big_h, big_w = hist.shape[1], hist.shape[2]
     w = big_w // 2
     n_bx, n_reg = bx_i.shape[0], offsets.shape[1]
     for y in prange(big_h):
         even = np.empty(w, np.float32)
         odd = np.empty(w, np.float32)
+        step_row = steps[near_y[y]]
         for c in range(3):
             down, row = across[c, y], hist[c, y]
             even[:] = F32(0.0)
@@ -991,6 +996,7 @@ def bp_back_x_2x(hist, bx_i, bx_w, offsets, reg_w, q_lo, q_hi, step, across, out
                 else:
                     odd[x // 2] = v
             for q in range(w):
+                step = step_row[q]
                 row[2 * q] = fma32(step, even[q], row[2 * q])
                 row[2 * q + 1] = fma32(step, odd[q], row[2 * q + 1])
         _rgb_row(hist, y, out)
