@@ -34,8 +34,10 @@ Per frame:
    samples (the box over each sample's footprint at its jittered position) and a
    fraction of the error goes back to the display pixels each footprint covers.
    Accumulation alone converges to the picture blurred by the render pixel's box;
-   these steps recover what the overlapping, shifted boxes still tell apart. Not on a
-   reset frame, which is mostly EASU's start.
+   these steps recover what the overlapping, shifted boxes still tell apart. The
+   fraction is larger on moving pixels, whose history this frame's resampling
+   blurred (``moving_back_projection``). Not on a reset frame, which is mostly EASU's
+   start.
 4. Output: uint8 sRGB (3, H, W), what ring U holds; conversion from YCoCg, scale,
    rounding and clamp are one matrix product and a clamp. RCAS can sharpen it
    (``output_sharpness``; off by default since back-projection) and each display
