@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import sys
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -106,9 +107,20 @@ def supports(render: Size, display: Size) -> bool:
     return render.width * render.height < limit and display.width * display.height < limit
 
 
-def _transposed(table: npt.NDArray[Any]) -> npt.NDArray[Any]:
-    """An x table as the kernels take it: (taps, n), contiguous."""
-    return np.ascontiguousarray(table.T)
+@lru_cache(maxsize=512)
+def _kernel_x_tables(
+    n_render: int, n_display: int, jitter: float
+) -> tuple[I64Array, F32Array, I64Array, F32Array]:
+    """The x tables of ``cached_axis_taps`` as the kernels take them, (taps, n) and
+    contiguous (forward index, weight, back index, weight): transposed once per size and
+    jitter, as the tables are built, not every frame."""
+    t = cached_axis_taps(n_render, n_display, jitter)
+    return (
+        np.ascontiguousarray(t.forward_index.T),
+        np.ascontiguousarray(t.forward_weight.T),
+        np.ascontiguousarray(t.back_index.T),
+        np.ascontiguousarray(t.back_weight.T),
+    )
 
 
 def _f32(values: torch.Tensor) -> F32Array:
@@ -225,7 +237,7 @@ class HostTemporal:
         if p.back_projection is not None:
             w, h = self.render
             big_w, big_h = self.display
-            tx = cached_axis_taps(w, big_w, jit[0])
+            tx = _kernel_x_tables(w, big_w, jit[0])
             ty = cached_axis_taps(h, big_h, jit[1])
             reg = cached_regular_2x(w, big_w, jit[0]) if self.scale == 2 else None
             self._back_project(tx, ty, reg, self._step_map(p.back_projection, any_moving), out)
@@ -246,28 +258,27 @@ class HostTemporal:
         """Back-projection's step per render pixel (``TemporalUpscaler._step_map``):
         ``moving_back_projection`` where the dilated motion is not zero."""
         steps = self._steps
+        steps.fill(still)
         moving_step = self.params.moving_back_projection
-        if moving_step is None or not any_moving:
-            steps.fill(still)
-            return steps
-        d = self._buf.dilated
-        np.copyto(steps, np.where((d[0] != 0.0) | (d[1] != 0.0), moving_step, still))
+        if moving_step is not None and any_moving:
+            d = self._buf.dilated
+            steps[(d[0] != 0.0) | (d[1] != 0.0)] = moving_step
         return steps
 
     def _back_project(
         self,
-        tx: AxisTaps,
+        tx: tuple[I64Array, F32Array, I64Array, F32Array],
         ty: AxisTaps,
         reg: Regular2x | None,
         steps: npt.NDArray[np.float32],
         out: npt.NDArray[np.uint8],
     ) -> None:
         """``back_projection.back_project`` on the new history (the spare buffer) with the
-        kernels, then the history into ``out``; the column passes follow the tables'
-        pattern ``reg`` at 2x where there is one."""
+        kernels, then the history into ``out``; ``tx`` the x tables as
+        ``_kernel_x_tables`` gives them; the column passes follow the tables' pattern
+        ``reg`` at 2x where there is one."""
         hist, across = self._spare, self._across
-        fx_i, fx_w = _transposed(tx.forward_index), _transposed(tx.forward_weight)
-        bx_i, bx_w = _transposed(tx.back_index), _transposed(tx.back_weight)
+        fx_i, fx_w, bx_i, bx_w = tx
         if reg is None:
             kernels.bp_predict_x(hist, fx_i, fx_w, 0, _NO_TAPS, 0, 0, across)
         else:

@@ -128,22 +128,25 @@ def _warp_render_plane(plane: torch.Tensor, motion: torch.Tensor) -> torch.Tenso
 # their footprints; bilinear interpolation blurs them a second time, and a residual on
 # it spent its capacity undoing that (on photographs' first frames a bilinear base was
 # 1.5 dB below bicubic, and the trained U-Net 0.2 dB below bicubic still).
-BASES = ("bilinear", "cubic")
+# Kernel radius of each base: samples at offsets -r..r can be weighted for |d| < 1.
+BASE_RADIUS = {"bilinear": 1, "cubic": 2}
+BASES = tuple(BASE_RADIUS)
 
 
 def _tap_weights(d: torch.Tensor, base: str) -> torch.Tensor:
-    """Weights of the samples at offsets -2..2 for a position d (|d| < 1) after the
-    sample at offset 0: (..., 5), summing to one."""
-    k = torch.arange(-2, 3, device=d.device, dtype=d.dtype)
+    """Weights of the samples at offsets -r..r (``BASE_RADIUS``) for a position d
+    (|d| < 1) after the sample at offset 0: (..., 2 r + 1), summing to one."""
+    if base not in BASE_RADIUS:
+        raise ValueError(f"unknown base {base!r}; allowed: {', '.join(BASES)}")
+    r = BASE_RADIUS[base]
+    k = torch.arange(-r, r + 1, device=d.device, dtype=d.dtype)
     t = (d.unsqueeze(-1) - k).abs()
     if base == "bilinear":
         return F.relu(1.0 - t)
-    if base == "cubic":
-        # Keys' cubic with a = -0.5 (Catmull-Rom): interpolating, support 2.
-        near = (1.5 * t - 2.5) * t * t + 1.0
-        far = ((-0.5 * t + 2.5) * t - 4.0) * t + 2.0
-        return torch.where(t <= 1.0, near, torch.where(t < 2.0, far, torch.zeros_like(t)))
-    raise ValueError(f"unknown base {base!r}; allowed: {', '.join(BASES)}")
+    # Keys' cubic with a = -0.5 (Catmull-Rom): interpolating, support 2.
+    near = (1.5 * t - 2.5) * t * t + 1.0
+    far = ((-0.5 * t + 2.5) * t - 4.0) * t + 2.0
+    return torch.where(t <= 1.0, near, torch.where(t < 2.0, far, torch.zeros_like(t)))
 
 
 def base_phases(
@@ -153,7 +156,8 @@ def base_phases(
     base: str = "bilinear",
 ) -> torch.Tensor:
     """(N, 3, h, w) -> (N, 3 s s, h, w): the upsampling ``base`` (edges clamped) in
-    pixel_unshuffle order, as one grouped 5x5 convolution at render size instead of a
+    pixel_unshuffle order, as one grouped convolution at render size (3x3 bilinear, 5x5
+    cubic) instead of a
     display-size pass. With ``jitter`` (N, 2), render pixel i is taken to sit at
     i + 0.5 + j, where this frame sampled it, so the result is aligned with the
     unjittered display grid whatever the jitter (a shifted base would leave the
@@ -165,12 +169,13 @@ def base_phases(
     sub = (torch.arange(scale, device=dev, dtype=torch.float32) + 0.5) / scale - 0.5
     j = torch.zeros((n, 2), device=dev) if jitter is None else jitter.to(dev, torch.float32)
     d = sub.view(1, 1, scale) - j.view(n, 2, 1)  # (N, axis, s)
-    taps = _tap_weights(d, base)  # (N, axis, s, 5)
+    taps = _tap_weights(d, base)  # (N, axis, s, 2 r + 1)
+    r, size = BASE_RADIUS[base], taps.shape[-1]
     tx, ty = taps[:, 0], taps[:, 1]
-    kernel = torch.einsum("nay,nbx->nabyx", ty, tx).reshape(n, 1, scale * scale, 5, 5)
-    weight = kernel.expand(n, 3, scale * scale, 5, 5).reshape(n * 3 * scale * scale, 1, 5, 5)
+    kernel = torch.einsum("nay,nbx->nabyx", ty, tx).reshape(n, 1, scale * scale, size, size)
+    weight = kernel.expand(n, 3, scale * scale, size, size).reshape(-1, 1, size, size)
     _, c, h, w = color.shape
-    padded = F.pad(color, (2, 2, 2, 2), mode="replicate").reshape(1, n * c, h + 4, w + 4)
+    padded = F.pad(color, (r, r, r, r), mode="replicate").reshape(1, n * c, h + 2 * r, w + 2 * r)
     out = F.conv2d(padded, weight.to(color.dtype), groups=n * c)
     return out.view(n, c * scale * scale, h, w)
 
