@@ -78,6 +78,8 @@ export class AudioPlayer {
 	packets = 0;
 	decoded = 0;
 	underrunFrames = 0;
+	/** Output frames filled by loss concealment (a repeated pitch period, see the worklet). */
+	concealedFrames = 0;
 	bufferedMs = 0;
 	muted = false;
 	volume = 0.8;
@@ -252,10 +254,11 @@ export class AudioPlayer {
 		return ((contextFrame - this.#offsetFrames) / this.context.sampleRate) * 1000;
 	}
 
-	#onReport(m: { offset: number; buffered: number; underrun: number; played: [number, number][] }): void {
+	#onReport(m: { offset: number; buffered: number; underrun: number; concealed: number; played: [number, number][] }): void {
 		const rate = this.context.sampleRate;
 		this.bufferedMs = (m.buffered / rate) * 1000;
 		this.underrunFrames = m.underrun;
+		this.concealedFrames = m.concealed;
 		if (!this.running) return;
 		const ts = this.context.getOutputTimestamp();
 		if (ts.contextTime === undefined || ts.performanceTime === undefined) return;

@@ -41,7 +41,7 @@ export class Overlay {
 			`keyframes asked ${s.recovery.keyframeRequests}${s.recovery.waiting ? ` (waiting: ${s.recovery.reason})` : ""}  recovered ${s.recovery.recoveries}${s.recovery.lastRecoveryMs === undefined ? "" : ` last ${s.recovery.lastRecoveryMs.toFixed(0)} ms`}`,
 			`frame id ${s.lastPresentedFrameId ?? "-"}  inputs ${s.inputsSent}  feedback ${s.feedbackSent}  recv ${(s.bytesReceived / 1e6).toFixed(1)} MB`,
 			s.audio.enabled
-				? `audio ${s.audio.running ? (s.audio.muted ? "muted" : `on ${Math.round(s.audio.volume * 100)}%`) : "click to start"}  packets ${s.audio.packets}  buffered ${s.audio.bufferedMs.toFixed(0)} ms  underrun ${s.audio.underrunFrames}`
+				? `audio ${s.audio.running ? (s.audio.muted ? "muted" : `on ${Math.round(s.audio.volume * 100)}%`) : "click to start"}  packets ${s.audio.packets}  buffered ${s.audio.bufferedMs.toFixed(0)} ms  underrun ${s.audio.underrunFrames}  concealed ${s.audio.concealedFrames}`
 				: "audio -",
 			"",
 			"latency ms        p50     p95",

@@ -206,6 +206,7 @@ function main(): void {
 			decoded: audio?.decoded ?? 0,
 			bufferedMs: audio?.bufferedMs ?? 0,
 			underrunFrames: audio?.underrunFrames ?? 0,
+			concealedFrames: audio?.concealedFrames ?? 0,
 			sync: audio?.syncParts(),
 			// Video frames that waited for their sound (lip sync), and their mean wait.
 			videoHeld: hold.held,
