@@ -9,8 +9,8 @@ carries the decoder's transient too. Loss pattern as in tests/e2e/test_audio_los
 
 Before concealment (gaps faded to silence over 2.7 ms, the worklet of 2026-11-26) the
 same runs gave, tone seeds 7 / 11: 32.1 / 29.0 dB median tone-to-rest (worst window
-10.3 / 10.7), -0.1 dB SNR over the lost packets; voiced 0.1 dB. With it: 46.3 / 44.7
-(worst 28.4 / 25.6), voiced 4.1 dB.
+10.3 / 10.7), -0.1 dB SNR over the lost packets; voiced 0.1 dB. With it: 46.3 / 44.4
+(worst 28.4 / 24.4), SNR 8.8 / 10.7 dB; voiced 4.2 dB.
 """
 
 from __future__ import annotations

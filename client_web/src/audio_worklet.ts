@@ -28,6 +28,10 @@ const HISTORY = MAX_PERIOD + MATCH;
 const HOLD = Math.round(sampleRate * 0.01); // concealment at full level
 const FADE = Math.round(sampleRate * 0.05); // then down to silence
 const RESUME = Math.round(sampleRate * 0.005); // cross-fade from concealment to the stream
+// Where the repeated period starts again (and where it first follows the played sound)
+// the waveform does not quite continue (an integer period, a changing sound): the step
+// against a straight-line continuation is spread over this many samples instead.
+const JUNCTION = Math.round(sampleRate * 0.001);
 // Below this correlation the sound is not periodic (noise, a transient): the longest
 // period is repeated, a slower and less buzzy loop than a short one.
 const PERIODIC = 0.3;
@@ -43,6 +47,7 @@ class UpcastAudio extends AudioWorkletProcessor {
 		this.historyEnd = 0; // samples written into the ring
 		this.historyValid = 0; // of which played without a silent break (at most HISTORY)
 		this.template = null; // one period being repeated while a gap is concealed
+		this.junction = 0; // its first sample less the straight-line continuation before it
 		this.concealed = 0; // samples concealed in this gap
 		this.resumed = -1; // samples into the cross-fade back, -1 outside one
 		this.underrun = 0; // output frames without their sample while chunks were expected
@@ -104,13 +109,18 @@ class UpcastAudio extends AudioWorkletProcessor {
 			if (score > bestScore) { bestScore = score; best = p; }
 		}
 		this.template = x.slice(HISTORY - best);
+		// A loop's start follows its own end: the same step at the first sample and at
+		// every repeat.
+		this.junction = this.template[0] - (2 * x[HISTORY - 1] - x[HISTORY - 2]);
 		this.concealed = 0;
 		this.resumed = -1;
 	}
 	concealment() {
 		const n = this.concealed++;
 		const level = n < HOLD ? 1 : Math.max(0, 1 - (n - HOLD) / FADE);
-		return level * this.template[n % this.template.length];
+		const i = n % this.template.length;
+		const v = this.template[i] - (i < JUNCTION ? this.junction * (1 - i / JUNCTION) : 0);
+		return level * v;
 	}
 	process(inputs, outputs) {
 		const out = outputs[0][0];
