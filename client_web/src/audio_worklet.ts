@@ -46,7 +46,10 @@ class UpcastAudio extends AudioWorkletProcessor {
 		this.history = new Float32Array(HISTORY); // what was played, a ring
 		this.historyEnd = 0; // samples written into the ring
 		this.historyValid = 0; // of which played without a silent break (at most HISTORY)
-		this.template = null; // one period being repeated while a gap is concealed
+		// Allocated once: the audio thread should not make garbage.
+		this.recent = new Float32Array(HISTORY); // the ring, oldest first, at a gap's start
+		this.template = new Float32Array(MAX_PERIOD); // its first period samples repeat
+		this.period = 0; // 0: no gap being concealed
 		this.junction = 0; // its first sample less the straight-line continuation before it
 		this.concealed = 0; // samples concealed in this gap
 		this.resumed = -1; // samples into the cross-fade back, -1 outside one
@@ -85,7 +88,7 @@ class UpcastAudio extends AudioWorkletProcessor {
 	}
 	forget() {
 		this.historyValid = 0;
-		this.template = null;
+		this.period = 0;
 		this.resumed = -1;
 	}
 	remember(v) {
@@ -94,9 +97,9 @@ class UpcastAudio extends AudioWorkletProcessor {
 		if (this.historyValid < HISTORY) this.historyValid++;
 	}
 	// The period to repeat: the lag whose last MATCH samples best match the MATCH before
-	// the gap (normalised correlation), copied out as the template.
+	// the gap (normalised correlation); its last period is copied out as the template.
 	startConcealment() {
-		const x = new Float32Array(HISTORY);
+		const x = this.recent;
 		for (let i = 0; i < HISTORY; i++) x[i] = this.history[(this.historyEnd + i) % HISTORY];
 		let energy = 0;
 		for (let i = HISTORY - MATCH; i < HISTORY; i++) energy += x[i] * x[i];
@@ -108,7 +111,8 @@ class UpcastAudio extends AudioWorkletProcessor {
 			const score = c / Math.sqrt(e * energy + 1e-30);
 			if (score > bestScore) { bestScore = score; best = p; }
 		}
-		this.template = x.slice(HISTORY - best);
+		this.period = best;
+		this.template.set(x.subarray(HISTORY - best));
 		// A loop's start follows its own end: the same step at the first sample and at
 		// every repeat.
 		this.junction = this.template[0] - (2 * x[HISTORY - 1] - x[HISTORY - 2]);
@@ -118,7 +122,7 @@ class UpcastAudio extends AudioWorkletProcessor {
 	concealment() {
 		const n = this.concealed++;
 		const level = n < HOLD ? 1 : Math.max(0, 1 - (n - HOLD) / FADE);
-		const i = n % this.template.length;
+		const i = n % this.period;
 		const v = this.template[i] - (i < JUNCTION ? this.junction * (1 - i / JUNCTION) : 0);
 		return level * v;
 	}
@@ -138,26 +142,26 @@ class UpcastAudio extends AudioWorkletProcessor {
 			let v;
 			if (s !== null) {
 				v = s;
-				if (this.template !== null) {
+				if (this.period !== 0) {
 					// The gap ended: fade from the concealment into the stream.
 					if (this.resumed < 0) this.resumed = 0;
 					const w = ++this.resumed / RESUME;
 					v = w * s + (1 - w) * this.concealment();
-					if (this.resumed >= RESUME) { this.template = null; this.resumed = -1; }
+					if (this.resumed >= RESUME) { this.period = 0; this.resumed = -1; }
 				}
 				if (this.gain < 1) this.gain = Math.min(1, this.gain + 1 / RAMP);
 				this.remember(v);
 				this.last = v;
 			} else {
 				silent++;
-				if (!jumping && this.template === null && this.gain === 1 && this.historyValid === HISTORY) this.startConcealment();
-				if (!jumping && this.template !== null && this.concealed >= HOLD + FADE) {
+				if (!jumping && this.period === 0 && this.gain === 1 && this.historyValid === HISTORY) this.startConcealment();
+				if (!jumping && this.period !== 0 && this.concealed >= HOLD + FADE) {
 					// Faded out: silence until the stream is back (then a plain fade in).
 					this.forget();
 					this.gain = 0;
 					this.last = 0;
 				}
-				if (!jumping && this.template !== null) {
+				if (!jumping && this.period !== 0) {
 					this.resumed = -1; // lost again while fading back: conceal on
 					v = this.concealment();
 					this.concealedTotal++;
