@@ -25,6 +25,8 @@ export interface AudioRendition {
 	jitter?: number;
 }
 
+// A closed (errored) decoder is replaced at most this often.
+const RESTART_MS = 100;
 /** Audio jitter buffer: how far ahead of its arrival a chunk is scheduled at least. */
 export const JITTER_MS = 20;
 // A new target closer than this to the offset in use is ignored: every change is a
@@ -80,6 +82,12 @@ export class AudioPlayer {
 	underrunFrames = 0;
 	/** Output frames filled by loss concealment (a repeated pitch period, see the worklet). */
 	concealedFrames = 0;
+	/** Errors of the decoder (each closes it), the new decoders made after them, and
+	 * frames too short to hold a timestamp and a packet. */
+	decoderErrors = 0;
+	decoderRestarts = 0;
+	malformed = 0;
+	#restartedMs = -Infinity;
 	bufferedMs = 0;
 	muted = false;
 	volume = 0.8;
@@ -128,18 +136,41 @@ export class AudioPlayer {
 
 	configure(rendition: AudioRendition): void {
 		if (this.#rendition?.track === rendition.track && this.#decoder?.state === "configured") return;
-		this.#decoder?.close();
-		this.#pending.length = 0;
 		this.#rendition = rendition;
+		this.#makeDecoder(rendition);
+	}
+
+	#makeDecoder(rendition: AudioRendition): void {
+		if (this.#decoder && this.#decoder.state !== "closed") this.#decoder.close();
+		this.#pending.length = 0;
 		this.#decoder = new AudioDecoder({
 			output: (data) => this.#decodedData(data),
-			error: (err) => console.warn("upcast: audio decoder:", err.message),
+			error: (err) => {
+				// WebCodecs closes a decoder after any error (a packet it cannot decode):
+				// frame() makes a new one.
+				this.decoderErrors++;
+				console.warn("upcast: audio decoder:", err.message);
+			},
 		});
 		this.#decoder.configure({ codec: rendition.codec, sampleRate: rendition.sampleRate, numberOfChannels: rendition.numberOfChannels });
 	}
 
 	/** One legacy frame: varint pts (us) + Opus packet. */
 	frame(payload: Uint8Array): void {
+		if (payload.length < 2 || payload.length <= 1 << (payload[0] >> 6)) {
+			this.malformed++; // no room for a timestamp and a packet
+			return;
+		}
+		if (this.#decoder?.state === "closed" && this.#rendition) {
+			// An error closed it. Every Opus packet decodes on its own, so a new decoder
+			// goes on from this one (the worklet conceals what was lost meanwhile), at
+			// most once per RESTART_MS: a source that sends only garbage must not spin.
+			const now = performance.now();
+			if (now - this.#restartedMs < RESTART_MS) return;
+			this.#restartedMs = now;
+			this.decoderRestarts++;
+			this.#makeDecoder(this.#rendition);
+		}
 		const decoder = this.#decoder;
 		if (!decoder || decoder.state !== "configured") return;
 		const [ptsUs, size] = readVarint(payload);

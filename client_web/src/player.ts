@@ -207,6 +207,9 @@ function main(): void {
 			bufferedMs: audio?.bufferedMs ?? 0,
 			underrunFrames: audio?.underrunFrames ?? 0,
 			concealedFrames: audio?.concealedFrames ?? 0,
+			decoderErrors: audio?.decoderErrors ?? 0,
+			decoderRestarts: audio?.decoderRestarts ?? 0,
+			malformed: audio?.malformed ?? 0,
 			sync: audio?.syncParts(),
 			// Video frames that waited for their sound (lip sync), and their mean wait.
 			videoHeld: hold.held,

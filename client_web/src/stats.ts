@@ -146,7 +146,7 @@ export interface Stats {
 	/** Per stage, in ms: render ... publish (server), network, decode, present, total. */
 	latency: Summary;
 	/** The audio path: packets received, decoded, what the worklet holds and misses. */
-	audio: { enabled: boolean; running: boolean; muted: boolean; volume: number; packets: number; decoded: number; bufferedMs: number; underrunFrames: number; concealedFrames: number; sync?: ReturnType<import("./audio").AudioPlayer["syncParts"]>; videoHeld: number; videoHeldMeanMs: number };
+	audio: { enabled: boolean; running: boolean; muted: boolean; volume: number; packets: number; decoded: number; bufferedMs: number; underrunFrames: number; concealedFrames: number; decoderErrors: number; decoderRestarts: number; malformed: number; sync?: ReturnType<import("./audio").AudioPlayer["syncParts"]>; videoHeld: number; videoHeldMeanMs: number };
 	/** Key press -> first frame showing it, ms. */
 	inputToPhoton: { p50?: number; p95?: number; samples: number[] };
 	errors: string[];

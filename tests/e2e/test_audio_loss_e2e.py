@@ -9,10 +9,13 @@ skipped what could not arrive. Measured against the same page before the loss:
   checked sample by sample in tests/test_audio_concealment.py) instead of silence;
 - the sound does not drift: capture-to-heard latency after a few seconds of loss is
   where it was, as playback is tied to the output clock plus one offset.
+And packets the decoder cannot take (invalid Opus, a frame without a packet) do not end
+the sound: WebCodecs closes a decoder after an error, and the page makes a new one.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import random
 from collections.abc import Iterator
@@ -62,7 +65,8 @@ SPECTRA = """async ([hz, count]) => {
 
 
 class Lossy:
-    """Wraps the session's audio publish: drops packets while ``on``."""
+    """Wraps the session's audio publish: drops packets while ``on``; the next packets
+    get the Opus data queued in ``replace`` instead of theirs."""
 
     def __init__(self, publish: Any, seed: int = 7) -> None:
         self._publish = publish
@@ -70,8 +74,12 @@ class Lossy:
         self.on = False
         self.sent = 0
         self.dropped = 0
+        self.replace: list[bytes] = []
 
     def __call__(self, captured: CapturedAudio) -> None:
+        if self.replace:
+            bad = dataclasses.replace(captured.packet, payload=self.replace.pop(0))
+            captured = dataclasses.replace(captured, packet=bad)
         if self.on:
             burst = self.sent % 100 < 5  # 5 packets of every 100 (50 ms a second)
             if burst or self._random.random() < 0.05:
@@ -158,4 +166,33 @@ def test_lost_packets_make_no_click_storm_and_no_drift(
     assert sum(r > 20.0 for r in ratios) >= len(ratios) - 1, (summary, ratios)
     # No drift: the same latency, within a jitter buffer's worth.
     assert abs(latency_after - latency_before) < 20.0, summary
+    live.check()
+
+
+def test_an_undecodable_packet_does_not_end_the_sound(
+    lossy_stack: tuple[LiveStack, Lossy], browser: Any
+) -> None:
+    """WebCodecs closes a decoder after an error: the page makes a new one and the sound
+    goes on (before, one bad packet silenced the page until it reloaded)."""
+    live, lossy = lossy_stack
+    page = open_player(browser, live.player_url(overlay="0"), frames=5)
+    try:
+        page.click("#audio-mute")
+        page.wait_for_function("() => window.upcast.stats().audio.decoded > 50", timeout=20_000)
+        before = stats(page)["audio"]
+        # Three invalid packets (TOC code 3, a count of 63 frames of 20 ms: longer than
+        # Opus' 120 ms), then two frames with a timestamp and no packet at all.
+        lossy.replace = [b"\xff\xff\xff\xff"] * 3 + [b""] * 2
+        page.wait_for_function(
+            f"() => window.upcast.stats().audio.decoded > {before['decoded']} + 150",
+            timeout=10_000,
+        )
+        after = stats(page)["audio"]
+    finally:
+        page.close()
+    counts = ("decoded", "decoderErrors", "decoderRestarts", "malformed")
+    print("bad packets:", {k: after[k] for k in counts})
+    assert after["decoderErrors"] >= 1, after  # the bad packets did break the decoder
+    assert after["decoderRestarts"] >= 1, after
+    assert after["malformed"] - before["malformed"] == 2, after  # dropped, never decoded
     live.check()
