@@ -35,6 +35,11 @@ class CaptureStats:
     frames: int = 0
     skipped: int = 0  # frames the worker wrote that we never encoded (newest-only reads)
     thinned: int = 0  # frames left out on purpose: the link cannot carry the full rate
+    # Frames whose presentation time is not after the last encoded one's, left out (the
+    # encoder needs increasing pts): rendered before the stream's clock origin (the
+    # session starts its media clock after the game has already filled the ring), or
+    # stamped out of order.
+    not_after_last: int = 0
     errors: int = 0
 
 
@@ -71,6 +76,7 @@ class CaptureThread:
         self._frame_tap = frame_tap
         self._keep_every = keep_every
         self._counter = 0
+        self._last_pts_us: int | None = None
         self._thread = threading.Thread(target=self._run, name="capture-encode", daemon=True)
 
     def start(self) -> None:
@@ -113,10 +119,13 @@ class CaptureThread:
                 return
             frame = display_frame_of(lease)
             meta = frame.meta  # read_meta copied the header: it outlives the lease
+            pts_us = self._pts_us(meta)
+            if self._last_pts_us is not None and pts_us <= self._last_pts_us:
+                self.stats.not_after_last += 1
+                return
+            self._last_pts_us = pts_us
             stamp(meta.stamps, Stage.ENCODE_START)
-            encoded = self.encoder.encode(
-                frame.color, frame_id=meta.frame_id, pts_us=self._pts_us(meta)
-            )
+            encoded = self.encoder.encode(frame.color, frame_id=meta.frame_id, pts_us=pts_us)
             if self._frame_tap is not None:
                 self._frame_tap(meta.frame_id, frame.color)
         stamp(meta.stamps, Stage.ENCODE_END)
