@@ -21,6 +21,13 @@ def test_predictor_names_are_framegen_s() -> None:
     assert list(names.PREDICTORS) == framegen.available()
 
 
+def test_network_base_names_are_the_kernels() -> None:
+    from upscalers.neural.features import BASE_RADIUS
+
+    assert tuple(BASE_RADIUS) == names.NETWORK_BASES
+    assert names.DEFAULT_NETWORK_BASE in names.NETWORK_BASES
+
+
 def test_cache_policy_names_are_the_policies() -> None:
     assert names.cache_policies() == policies.available()
 

@@ -39,6 +39,12 @@ TEMPORAL_UPSCALERS: frozenset[str] = frozenset({"temporal", "unet", "unet_cached
 # As upscalers.framegen.available(): registration order, the order errors list them in.
 PREDICTORS: tuple[str, ...] = ("repeat", "splat", "backward_warp", "mpe")
 
+# The upsamplings a network's residual can be added to (upscalers.neural.features):
+# "bilinear" is every checkpoint's from before they were recorded, and a new network's
+# unless asked otherwise; "cubic" is Catmull-Rom.
+NETWORK_BASES: tuple[str, ...] = ("bilinear", "cubic")
+DEFAULT_NETWORK_BASE = "bilinear"
+
 # Cache policies by plain name (upscalers.cache.policies.registry), sorted.
 CACHE_POLICIES: tuple[str, ...] = (
     "budget",
@@ -73,6 +79,12 @@ def cache_policies() -> list[str]:
 def check_upscaler(name: str) -> str:
     if name not in UPSCALERS:
         raise ValueError(f"unknown upscaler {name!r}; allowed: {', '.join(UPSCALERS)}")
+    return name
+
+
+def check_network_base(name: str) -> str:
+    if name not in NETWORK_BASES:
+        raise ValueError(f"unknown base {name!r}; allowed: {', '.join(NETWORK_BASES)}")
     return name
 
 

@@ -17,14 +17,14 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from upscalers.names import DEFAULT_NETWORK_BASE, NETWORK_BASES
+
 if TYPE_CHECKING:
     from torch import nn
 
     from server.frames.frame import Size
 
 DEFAULT_DATA_DIR = Path.home() / ".cache" / "upcast"
-# The upsampling under a new network's residual (upscalers.neural.features.BASES).
-DEFAULT_BASE = "bilinear"
 
 
 def _positive_int(text: str) -> int:
@@ -78,7 +78,7 @@ def _initial_model(
     from upscalers.neural.network import build_model, load_checkpoint, set_base
 
     if init is None:
-        return build_model(name, scale, base=base or DEFAULT_BASE), {}
+        return build_model(name, scale, base=base or DEFAULT_NETWORK_BASE), {}
     try:
         found, model, found_scale, meta = load_checkpoint(init)
     except (FileNotFoundError, ValueError) as e:
@@ -186,10 +186,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--base",
-        choices=("bilinear", "cubic"),
+        choices=NETWORK_BASES,
         default=None,
         help="the upsampling the network's residual is added to: bilinear or cubic "
-        f"(Catmull-Rom); default: --init's own, else {DEFAULT_BASE}",
+        f"(Catmull-Rom); default: --init's own, else {DEFAULT_NETWORK_BASE}",
     )
 
 

@@ -26,6 +26,8 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
+from upscalers.names import DEFAULT_NETWORK_BASE, check_network_base
+
 SCALE = 2
 # Input channels of a network trained for ``SCALE``.
 BASE_CHANNELS = 10
@@ -128,17 +130,15 @@ def _warp_render_plane(plane: torch.Tensor, motion: torch.Tensor) -> torch.Tenso
 # their footprints; bilinear interpolation blurs them a second time, and a residual on
 # it spent its capacity undoing that (on photographs' first frames a bilinear base was
 # 1.5 dB below bicubic, and the trained U-Net 0.2 dB below bicubic still).
-# Kernel radius of each base: samples at offsets -r..r can be weighted for |d| < 1.
+# Kernel radius of each base (upscalers.names.NETWORK_BASES): samples at offsets -r..r
+# can be weighted for |d| < 1.
 BASE_RADIUS = {"bilinear": 1, "cubic": 2}
-BASES = tuple(BASE_RADIUS)
 
 
 def _tap_weights(d: torch.Tensor, base: str) -> torch.Tensor:
     """Weights of the samples at offsets -r..r (``BASE_RADIUS``) for a position d
     (|d| < 1) after the sample at offset 0: (..., 2 r + 1), summing to one."""
-    if base not in BASE_RADIUS:
-        raise ValueError(f"unknown base {base!r}; allowed: {', '.join(BASES)}")
-    r = BASE_RADIUS[base]
+    r = BASE_RADIUS[check_network_base(base)]
     k = torch.arange(-r, r + 1, device=d.device, dtype=d.dtype)
     t = (d.unsqueeze(-1) - k).abs()
     if base == "bilinear":
@@ -153,7 +153,7 @@ def base_phases(
     color: torch.Tensor,
     scale: int,
     jitter: torch.Tensor | None = None,
-    base: str = "bilinear",
+    base: str = DEFAULT_NETWORK_BASE,
 ) -> torch.Tensor:
     """(N, 3, h, w) -> (N, 3 s s, h, w): the upsampling ``base`` (edges clamped) in
     pixel_unshuffle order, as one grouped convolution at render size (3x3 bilinear, 5x5

@@ -17,7 +17,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from upscalers.neural.features import BASES, base_phases, feature_channels, jitter_of
+from upscalers.names import DEFAULT_NETWORK_BASE, check_network_base
+from upscalers.neural.features import base_phases, feature_channels, jitter_of
 from upscalers.neural.unet import UNet
 from upscalers.neural.unetpp import UNetPlusPlus
 
@@ -27,11 +28,13 @@ WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 
 
 def build_model(
-    name: str, scale: int = 2, widths: tuple[int, ...] | None = None, base: str = "bilinear"
+    name: str,
+    scale: int = 2,
+    widths: tuple[int, ...] | None = None,
+    base: str = DEFAULT_NETWORK_BASE,
 ) -> nn.Module:
-    """An untrained network whose output is the upsampling ``base`` (features.BASES)."""
-    if base not in BASES:
-        raise ValueError(f"unknown base {base!r}; allowed: {', '.join(BASES)}")
+    """An untrained network whose output is the upsampling ``base`` (names.NETWORK_BASES)."""
+    check_network_base(base)
     try:
         cls = MODELS[name]
     except KeyError:
@@ -56,14 +59,13 @@ def build_model(
 
 def base_of(model: nn.Module) -> str:
     """The upsampling the network's residual is added to."""
-    return str(getattr(model, "upsampling_base", "bilinear"))
+    return str(getattr(model, "upsampling_base", DEFAULT_NETWORK_BASE))
 
 
 def set_base(model: nn.Module, base: str) -> None:
     """Change the upsampling under the residual (fine-tuning a network onto another
     base); the weights stay, so the output changes until it is trained again."""
-    if base not in BASES:
-        raise ValueError(f"unknown base {base!r}; allowed: {', '.join(BASES)}")
+    check_network_base(base)
     # A plain attribute (torch's stubs type Module attributes as tensors or modules).
     object.__setattr__(model, "upsampling_base", base)
 
@@ -101,9 +103,11 @@ def load_checkpoint(path: Path) -> tuple[str, nn.Module, int, dict[str, Any]]:
         raise ValueError(f"{path}: not an upcast network checkpoint (format {CHECKPOINT_FORMAT})")
     name, scale = str(ckpt["model"]), int(ckpt["scale"])
     # Checkpoints from before the base was recorded were all trained on bilinear.
-    base = str(ckpt.get("base", "bilinear"))
-    if base not in BASES:
-        raise ValueError(f"{path}: unknown upsampling base {base!r}")
+    base = str(ckpt.get("base", DEFAULT_NETWORK_BASE))
+    try:
+        check_network_base(base)
+    except ValueError as e:
+        raise ValueError(f"{path}: {e}") from None
     model = build_model(name, scale, tuple(int(w) for w in ckpt["widths"]) or None, base)
     model.load_state_dict({k: v.float() for k, v in ckpt["state_dict"].items()})
     model.eval()
