@@ -3,10 +3,12 @@ compares a browser's canvas with when the session runs in a container."""
 
 from __future__ import annotations
 
+import base64
 import io
 import json
 import logging
 import socket
+import time
 import urllib.error
 import urllib.request
 from collections.abc import Iterator
@@ -14,7 +16,7 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
-from server.bench.snapshots import THUMB, FrameThumbs, thumbnail
+from server.bench.snapshots import THUMB, FrameThumbs, page_thumbnail, thumbnail
 from server.serve.frame_tap import FrameTapServer, start_frame_tap
 
 
@@ -82,3 +84,48 @@ def test_a_taken_port_leaves_the_session_without_a_tap(caplog: pytest.LogCapture
         with caplog.at_level(logging.WARNING):
             assert start_frame_tap(FrameThumbs(), "127.0.0.1", taken.getsockname()[1]) is None
     assert "frame tap port" in caplog.text
+
+
+def test_every_frame_taken_is_found_whatever_the_thumbnail_thread_has_done() -> None:
+    """The tap only copies (it runs on the encoding thread); the thumbnails are made
+    later, or by the lookup: a burst past the waiting bound loses nothing, and each
+    thumbnail is the frame's as it was when taken, not what the buffer holds later."""
+    thumbs = FrameThumbs(keep=40)
+    buffer = np.zeros((72, 128, 4), dtype=np.uint8)  # one reused buffer, as a ring slot
+    for frame_id in range(40):
+        buffer[:] = 0
+        buffer[..., :3] = frame(frame_id)
+        thumbs(frame_id, buffer)
+    buffer[:] = 255
+    assert [frame_id for frame_id, _ in thumbs.items()] == list(range(40))
+    for frame_id in (0, 17, 39):
+        got = thumbs.get(frame_id)
+        assert got is not None
+        np.testing.assert_array_equal(got, thumbnail(frame(frame_id)))
+
+
+def test_the_thumbnail_thread_ends_when_idle_and_comes_back() -> None:
+    thumbs = FrameThumbs(keep=4)
+    thumbs.IDLE_EXIT_S = 0.05
+    thumbs(1, frame(1))
+    deadline = time.monotonic() + 5.0
+    while thumbs._worker is not None and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert thumbs._worker is None, "the thread stays after the frames stopped"
+    thumbs(2, frame(2))
+    assert [i for i, _ in thumbs.items()] == [1, 2]
+
+
+def test_a_page_thumbnail_is_the_box_mean_and_bad_ones_are_refused() -> None:
+    image = frame(3)
+    sums = image.reshape(18, 4, 32, 4, 3).sum(axis=(1, 3), dtype=np.uint16)
+    page = {"factor": THUMB, "rows": 18, "cols": 32, "sums": b64(sums.astype("<u2"))}
+    np.testing.assert_allclose(page_thumbnail(page), thumbnail(image), atol=1e-4)
+    with pytest.raises(ValueError, match="factor"):
+        page_thumbnail({**page, "factor": 2})
+    with pytest.raises(ValueError, match="sums"):
+        page_thumbnail({**page, "rows": 17})
+
+
+def b64(array: np.ndarray) -> str:
+    return base64.b64encode(array.tobytes()).decode()

@@ -16,7 +16,7 @@ import statistics
 from dataclasses import dataclass, field
 from typing import Any
 
-from server.bench.snapshots import FrameThumbs, decode_data_url, psnr, thumbnail
+from server.bench.snapshots import PAGE_THUMBNAIL, FrameThumbs, page_thumbnail, psnr
 from server.session.feedback import FREEZE_MS
 
 DRAW_WATCH = """
@@ -134,13 +134,13 @@ class PictureQuality:
     unknown: int = 0  # snapshots whose frame the tap no longer (or never) had
 
     def snapshot(self, page: Any, thumbs: FrameThumbs) -> None:
-        snap = page.evaluate("() => window.upcast.snapshot()")
-        frame_id = snap.get("frameId")
+        shown = page.evaluate(PAGE_THUMBNAIL)
+        frame_id = shown.get("frameId")
         sent = thumbs.get(frame_id) if frame_id is not None else None
         if sent is None:
             self.unknown += 1
             return
-        self.samples_db.append(psnr(thumbnail(decode_data_url(snap["dataUrl"])), sent))
+        self.samples_db.append(psnr(page_thumbnail(shown), sent))
 
     def summary(self) -> dict[str, Any]:
         s = sorted(self.samples_db)

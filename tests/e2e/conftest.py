@@ -16,13 +16,20 @@ from typing import Any
 import pytest
 
 from server.bench.latency import LiveStack
-from server.bench.snapshots import FrameThumbs, Thumb, decode_data_url, psnr, thumbnail
+from server.bench.snapshots import (
+    FrameThumbs,
+    Thumb,
+    decode_data_url,
+    page_thumbnail,
+    psnr,
+    thumbnail,
+)
 from server.ops.browser_paths import WEB_ROOT
 from server.stack.local import SessionConfig
 from tests.chromium import browser_marks
 
 # Re-exported for the tests (thumbnails and PSNR live in server/bench/snapshots.py).
-__all__ = ["FrameTap", "Live", "Thumb", "decode_data_url", "psnr", "thumbnail"]
+__all__ = ["FrameTap", "Live", "Thumb", "decode_data_url", "page_thumbnail", "psnr", "thumbnail"]
 
 RENDER = "320x180"
 DISPLAY = "640x360"

@@ -27,6 +27,7 @@ from tests.e2e.conftest import (
     decode_data_url,
     needs,
     open_player,
+    page_thumbnail,
     psnr,
     start_live,
     stats,
@@ -114,6 +115,26 @@ def test_canvas_shows_the_frame_the_server_encoded(moving: Live, page: Any) -> N
     assert statistics.median(same) >= MIN_PSNR_MEDIAN_DB, same
     assert len(far) >= 4
     assert statistics.median(same) >= statistics.median(far) + MIN_MARGIN_DB, (same, far)
+
+
+def test_the_page_thumbnail_is_the_snapshot_s(moving: Live, page: Any) -> None:
+    """window.upcast.thumbnail() (block sums made in the page, what the network
+    benchmark compares) is the thumbnail of the PNG snapshot of the same moment, and it
+    matches the frame the server sent under the id it gives."""
+    for _ in range(3):
+        snap, thumb = page.evaluate(
+            "() => [window.upcast.snapshot(), window.upcast.thumbnail()]"
+        )  # one task: the same canvas
+        assert thumb["frameId"] == snap["frameId"]
+        from_page = page_thumbnail(thumb)
+        from_png = thumbnail(decode_data_url(snap["dataUrl"]))
+        assert from_page.shape == from_png.shape == (360 // 4, 640 // 4, 3)
+        np.testing.assert_allclose(from_page, from_png, atol=1e-4)
+        if thumb["frameId"] is not None:
+            sent = moving.tap.get(thumb["frameId"])
+            assert sent is not None
+            assert psnr(from_page, sent) >= MIN_PSNR_EACH_DB
+        page.wait_for_timeout(150)
 
 
 @pytest.fixture
