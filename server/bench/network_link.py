@@ -18,7 +18,7 @@ from multiprocessing.connection import Connection
 from types import TracebackType
 from typing import Any
 
-from server.net import NetworkEmulator, Schedule
+from server.net import NetworkEmulator, Schedule, emulator_loop
 
 START_TIMEOUT_S = 30.0
 ANSWER_TIMEOUT_S = 10.0
@@ -51,8 +51,8 @@ def _serve(conn: Connection, kwargs: dict[str, Any]) -> None:
             with contextlib.suppress(OSError):
                 conn.send(("stopped", None))
 
-    with contextlib.suppress(KeyboardInterrupt):
-        asyncio.run(main())
+    with contextlib.suppress(KeyboardInterrupt), asyncio.Runner(loop_factory=emulator_loop) as run:
+        run.run(main())
 
 
 class EmulatorProcess:

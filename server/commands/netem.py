@@ -152,7 +152,7 @@ def _zero(stats: dict[str, Any]) -> dict[str, Any]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from server.net.emulator import NetworkEmulator, NonLoopbackError
+    from server.net.emulator import NetworkEmulator, NonLoopbackError, emulator_loop
     from server.net.profiles import ProfileError, resolve
 
     try:
@@ -174,7 +174,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"upcast netem: profile {args.profile}", flush=True)
     print(schedule.describe(), flush=True)
     try:
-        asyncio.run(_serve(args, emulator))
+        with asyncio.Runner(loop_factory=emulator_loop) as runner:
+            runner.run(_serve(args, emulator))
     except OSError as exc:
         print(f"upcast netem: cannot listen on {args.listen}: {exc.strerror}", file=sys.stderr)
         return 2

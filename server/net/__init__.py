@@ -5,7 +5,7 @@ reads schedule files, ``shaper`` decides each packet's fate without sockets, and
 ``emulator`` is the asyncio UDP proxy that applies it on loopback.
 """
 
-from server.net.emulator import EmulatorThread, NetworkEmulator, NonLoopbackError
+from server.net.emulator import EmulatorThread, NetworkEmulator, NonLoopbackError, emulator_loop
 from server.net.link_profile import Direction, GilbertElliott, LinkProfile, Schedule, Step
 from server.net.profiles import PROFILES, ProfileError, load_schedule, resolve
 from server.net.shaper import Decision, DirectionShaper, Fate, LinkShaper
@@ -25,6 +25,7 @@ __all__ = [
     "ProfileError",
     "Schedule",
     "Step",
+    "emulator_loop",
     "load_schedule",
     "resolve",
 ]
