@@ -121,29 +121,6 @@ def test_a_step_down_and_up_is_followed() -> None:
     assert not [t for t in run.lost_at if t >= 12], run.lost_at
 
 
-def _episodes(times: list[float]) -> int:
-    """Losses more than a second apart are separate congestion episodes."""
-    return sum(1 for i, t in enumerate(times) if i == 0 or t - times[i - 1] > 1.0)
-
-
-def test_a_link_that_drops_before_it_queues_is_not_overrun_again_and_again() -> None:
-    """A shallow buffer (20 ms, or 10: some routers and wireless links) loses frames
-    before a queue shows in the delay, so loss is the only signal there. After the cut
-    the climb back is slow (5 % a second) for as long as a congestion is remembered:
-    with the quick one (20 % a second) the rate was back over the link 2.5 s after
-    each cut, three loss episodes between 12 and 20 s."""
-
-    def capacity(t: float) -> float:
-        return 2_000_000 if 10 <= t < 20 else 20_000_000
-
-    for queue_s in (0.02, 0.01):
-        run, _ = simulate(capacity, 32, queue_s=queue_s)
-        assert min(run.between(10, 12)) < 2_000_000, run.between(10, 12)
-        later = [t for t in run.lost_at if 12 <= t < 20]
-        assert _episodes(later) <= 1, (queue_s, later)
-        assert run.rate_at(30.0) > 0.7 * CEILING, run.between(20, 30)
-
-
 def test_an_unlimited_link_keeps_the_configured_rate() -> None:
     run, rc = simulate(lambda t: 1e12, 10)
     assert set(run.rates) == {CEILING}

@@ -55,7 +55,6 @@ DECREASE_HOLD_S = 0.5
 INCREASE_HOLD_S = 1.0
 INCREASE_PER_S = 0.2  # multiplicative, far from the last congestion
 ADDITIVE_PER_S = 0.04  # of the rate at the last congestion, per second, near it
-LOSS_INCREASE_PER_S = 0.05  # after a cut for loss or a skip: GCC's loss-based climb
 NEAR_CONGESTION = 0.15  # within this fraction of the rate at the last decrease...
 CONGESTION_MEMORY_S = 6.0  # ...which happened less than this long ago
 PROBE_HEADROOM = 1.5
@@ -76,7 +75,6 @@ class _Viewer:
     rate: float = 0.0  # this viewer's allowed rate
     last_decrease_s: float = -1e9
     congestion_rate: float | None = None  # the rate at the last decrease
-    cut_by_loss: bool = False  # the last decrease was for loss or a skip, not a queue
     last_sample: LinkSample | None = None
     decreases: int = 0
     overuse_reports: int = 0  # consecutive reports with a growing queue
@@ -181,20 +179,7 @@ class RateController:
             and now_s - viewer.last_decrease_s < CONGESTION_MEMORY_S + INCREASE_HOLD_S
             and abs(viewer.rate - last) <= NEAR_CONGESTION * last
         )
-        remembered = now_s - viewer.last_decrease_s < CONGESTION_MEMORY_S + INCREASE_HOLD_S
-        if near and last:
-            step = ADDITIVE_PER_S * last
-        elif viewer.cut_by_loss and remembered:
-            # Loss or a skip leaves no point where the link gave out (what arrived then
-            # was a fraction of it), so the quick climb used to take the rate straight
-            # back over a link that drops packets before it queues them: a loss, a cut,
-            # and again every 2.5 s (tests/test_rate_control.py, a shallow buffer), a
-            # second freeze after the bench's step down. GCC's loss-based controller
-            # climbs 5 % a second after loss; so does this, for as long as a delay-based
-            # congestion point is remembered.
-            step = LOSS_INCREASE_PER_S * viewer.rate
-        else:
-            step = INCREASE_PER_S * viewer.rate
+        step = ADDITIVE_PER_S * last if near and last else INCREASE_PER_S * viewer.rate
         proven = PROBE_HEADROOM * sample.delivered_bps + 0.05 * self.ceiling
         target = min(self.ceiling, viewer.rate + step * min(dt, 1.0))
         # An app-limited stream cannot prove more than it sent; never lower it here.
@@ -249,7 +234,6 @@ class RateController:
         # groups reset): no such point, the climb back is the quick one.
         by_delay = (growing or high) and sample.delivered_bps is not None
         viewer.congestion_rate = sample.delivered_bps if by_delay else None
-        viewer.cut_by_loss = not by_delay
         viewer.rate = max(self.floor, cut)
         viewer.last_decrease_s = now_s
         viewer.decreases += 1
