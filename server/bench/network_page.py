@@ -16,7 +16,7 @@ import statistics
 from dataclasses import dataclass, field
 from typing import Any
 
-from server.bench.snapshots import PAGE_THUMBNAIL, FrameThumbs, page_thumbnail, psnr
+from server.bench.snapshots import FrameThumbs, shown_psnr
 from server.session.feedback import FREEZE_MS
 
 DRAW_WATCH = """
@@ -134,13 +134,11 @@ class PictureQuality:
     unknown: int = 0  # snapshots whose frame the tap no longer (or never) had
 
     def snapshot(self, page: Any, thumbs: FrameThumbs) -> None:
-        shown = page.evaluate(PAGE_THUMBNAIL)
-        frame_id = shown.get("frameId")
-        sent = thumbs.get(frame_id) if frame_id is not None else None
-        if sent is None:
+        db = shown_psnr(page, thumbs)
+        if db is None:
             self.unknown += 1
-            return
-        self.samples_db.append(psnr(page_thumbnail(shown), sent))
+        else:
+            self.samples_db.append(db)
 
     def summary(self) -> dict[str, Any]:
         s = sorted(self.samples_db)

@@ -37,8 +37,6 @@ def thumbnail(rgb: npt.NDArray[Any]) -> Thumb:
     # box mean (1.6 ms at 1280x720 where numpy's reshape-mean took 20).
     a = np.ascontiguousarray(rgb[:h, :w], dtype=np.float32)
     small = cv2.resize(a, (w // THUMB, h // THUMB), interpolation=cv2.INTER_AREA)
-    if small.ndim == 2:  # one channel: OpenCV drops the axis
-        small = small[:, :, None]
     thumb: Thumb = np.ascontiguousarray(small[:, :, :3], dtype=np.float32)
     return thumb
 
@@ -168,15 +166,23 @@ class ThumbSource(Protocol):
     def get(self, frame_id: int) -> Thumb | None: ...
 
 
+def shown_psnr(page: Any, thumbs: ThumbSource) -> float | None:
+    """PSNR of what the canvas shows now against the session's frame with the same id;
+    None when the page has shown no frame yet or the session no longer has it."""
+    shown = page.evaluate(PAGE_THUMBNAIL)
+    frame_id = shown.get("frameId")
+    sent = thumbs.get(frame_id) if frame_id is not None else None
+    return None if sent is None else psnr(page_thumbnail(shown), sent)
+
+
 def snapshot_psnr(page: Any, thumbs: ThumbSource, count: int = 6, gap_ms: int = 150) -> list[float]:
     """PSNR of ``count`` canvas thumbnails (``window.upcast.thumbnail()``) against the
     session's frame with the same id; snapshots whose frame is unknown are retried."""
     out: list[float] = []
     for _ in range(count * 10):
-        shown = page.evaluate(PAGE_THUMBNAIL)
-        sent = thumbs.get(shown["frameId"]) if shown["frameId"] is not None else None
-        if sent is not None:
-            out.append(psnr(page_thumbnail(shown), sent))
+        db = shown_psnr(page, thumbs)
+        if db is not None:
+            out.append(db)
             if len(out) == count:
                 return out
         page.wait_for_timeout(gap_ms)
