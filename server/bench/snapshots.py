@@ -9,7 +9,6 @@ import contextlib
 import io
 import os
 import threading
-import time
 from collections import OrderedDict
 from typing import Any, Protocol
 
@@ -75,7 +74,7 @@ def decode_data_url(url: str) -> npt.NDArray[np.uint8]:
 
 class FrameThumbs:
     """A frame tap (StreamingSession's ``frame_tap``): thumbnails of the last frames the
-    session encoded, by frame id, with their arrival times.
+    session encoded, by frame id.
 
     The tap runs on the encoding thread, so it only copies the frame (well under a
     millisecond at 1280x720); a thread of lower priority makes the thumbnails. Making
@@ -96,13 +95,11 @@ class FrameThumbs:
         self._waiting: OrderedDict[int, npt.NDArray[np.uint8]] = OrderedDict()
         self._worker: threading.Thread | None = None
         self.thumbs: OrderedDict[int, Thumb] = OrderedDict()
-        self.times: list[float] = []
 
     def __call__(self, frame_id: int, color: npt.NDArray[np.uint8]) -> None:
         copy = np.array(color, copy=True)  # the view is only valid during the call
         with self._lock:
             self._waiting[frame_id] = copy
-            self.times.append(time.monotonic())
             over = len(self._waiting) > self.MAX_WAITING
             if self._worker is None:
                 self._worker = threading.Thread(target=self._run, name="frame-thumbs", daemon=True)
@@ -121,10 +118,6 @@ class FrameThumbs:
         self._settle()
         with self._lock:
             return list(self.thumbs.items())
-
-    def frames_between(self, t0: float, t1: float) -> int:
-        with self._lock:
-            return sum(1 for t in self.times if t0 <= t < t1)
 
     def _make_next(self) -> bool:
         """The oldest waiting frame's thumbnail; the caller holds ``_work``."""
