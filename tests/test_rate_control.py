@@ -47,10 +47,14 @@ def simulate(
     busy_viewer: float = 0.0,
     stall_every_s: float | None = None,
     stall_s: float = 0.4,
+    size_spread: float = 0.0,
 ) -> tuple[Run, RateController]:
     """``busy_viewer``: the fraction of frames the viewer stamps 30-150 ms late (its
-    page's main thread was busy: the frame was there, the stamp is late)."""
+    page's main thread was busy: the frame was there, the stamp is late).
+    ``size_spread``: frames are ``1 +- size_spread`` times the rate's size, uniformly
+    (an encoder's frames are not all alike)."""
     noise = random.Random(3)
+    sizes = random.Random(4)
     rc = controller or RateController(CEILING, FLOOR)
     rate = float(CEILING)
     link_free_at = 0.0
@@ -62,7 +66,7 @@ def simulate(
     steps = int(seconds * FPS)
     for i in range(steps):
         now = i / FPS
-        size = int(rate / FPS / 8)
+        size = int(rate / FPS / 8 * sizes.uniform(1 - size_spread, 1 + size_spread))
         pts = i * 33_333
         rc.frame_sent(pts, size, now)
         start = max(now, link_free_at)
@@ -117,8 +121,27 @@ def test_a_step_down_and_up_is_followed() -> None:
     assert min(run.between(10, 12)) < 2_000_000, run.between(10, 12)
     assert run.rate_at(30.0) > 0.7 * CEILING, run.between(20, 30)
     # The step itself costs frames (a full buffer before any report can say so);
-    # from 2 s after it, none.
-    assert not [t for t in run.lost_at if t >= 12], run.lost_at
+    # from 2 s after it, at most the one frame of a probe past the 2 Mbit/s: once the
+    # rate is GCC's margin over the last congestion, the climb is the quick one and
+    # finds the link's limit again by passing it (with a 15 % margin the climb stayed
+    # careful until the step up and lost nothing here, but came back too late when a
+    # congestion fell just before the step: the test above).
+    assert len([t for t in run.lost_at if t >= 12]) <= 1, run.lost_at
+
+
+def test_the_climb_after_a_step_up_is_quick_wherever_the_last_congestion_fell() -> None:
+    # The climb is careful near the rate where the link last gave out; once past it
+    # by GCC's margin the link has proved wider and the climb is the quick one. A
+    # margin of 15 % (before) left the rate under 70 % of the ceiling 10 s after the
+    # step up whenever a congestion fell in the last 2 s before it (5 phases of 21).
+    for tenth in range(21):
+        step_up = 18.0 + tenth / 10
+
+        def capacity(t: float, step_up: float = step_up) -> float:
+            return 2_000_000 if 10 <= t < step_up else 20_000_000
+
+        run, _ = simulate(capacity, step_up + 10.5, size_spread=0.3)
+        assert run.rate_at(step_up + 10) > 0.7 * CEILING, (step_up, run.between(step_up, 99))
 
 
 def test_an_unlimited_link_keeps_the_configured_rate() -> None:
