@@ -39,6 +39,7 @@ Several players: the lowest rate wins (the encoder serves them all).
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass, field
 
 from server.session.feedback import FeedbackFields
@@ -78,7 +79,7 @@ def near_above(congestion_bps: float) -> float:
     at 1.6 Mbit/s, 9.5 % at 0.4, 2.4 % at 6. Past it the link has proved wider than
     where it last gave out, and the climb is the quick one again."""
     kbps = congestion_bps / 1000.0
-    return NEAR_ABOVE_DEVIATIONS * (NEAR_DEVIATION_KBPS * kbps) ** 0.5 * 1000.0
+    return NEAR_ABOVE_DEVIATIONS * math.sqrt(NEAR_DEVIATION_KBPS * kbps) * 1000.0
 
 
 @dataclass
