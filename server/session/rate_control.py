@@ -23,8 +23,7 @@ is a visible stall every few seconds.
   over it, ``near_above``), only by ``ADDITIVE_PER_S`` of that rate a second
   (GCC's near-convergence mode: the link's limit is probably there), never
   above ``PROBE_HEADROOM`` times what the viewer received (an app-limited stream
-  cannot prove more; counted on the wire, so divided by what the encoder makes of
-  its target) nor the configured bitrate.
+  cannot prove more) nor the configured bitrate.
 - **Nothing arrives** (reports without a new frame for a second while we send):
   the safe rate below, then up from there once frames flow.
 - **No feedback**: a player that sends input but no feedback (an old page), or
@@ -63,8 +62,6 @@ NEAR_ABOVE_DEVIATIONS = 3.0  # ...or this many of GCC's deviations above it...
 NEAR_DEVIATION_KBPS = 0.4  # GCC's floor of the normalized variance, in kbit/s
 CONGESTION_MEMORY_S = 6.0  # ...which happened less than this long ago
 PROBE_HEADROOM = 1.5
-MIN_YIELD = 0.5  # the encoder's output over its target, as the probe cap counts it
-YIELD_WINDOW_S = 2.0
 STALE_S = 2.0
 SILENT_PLAYER_S = 3.0  # input without any feedback for this long: an old page
 SAFE_FRACTION = 0.25
@@ -197,22 +194,11 @@ class RateController:
             and (1 - NEAR_BELOW) * last <= viewer.rate <= last + near_above(last)
         )
         step = ADDITIVE_PER_S * last if near and last else INCREASE_PER_S * viewer.rate
-        # The cap is on what the wire carried; the rate is the encoder's target, of which
-        # x264 makes 60-70 % on a simple scene. Without the conversion the cap, 1.5 x
-        # 0.6 x rate, stops the climb for good below 3 Mbit/s of a 6 Mbit/s ceiling.
-        wire = PROBE_HEADROOM * sample.delivered_bps + 0.05 * self.ceiling
-        proven = wire / self._encoder_yield(now_s)
+        proven = PROBE_HEADROOM * sample.delivered_bps + 0.05 * self.ceiling
         target = min(self.ceiling, viewer.rate + step * min(dt, 1.0))
         # An app-limited stream cannot prove more than it sent; never lower it here.
         viewer.rate = max(viewer.rate, min(target, proven))
         return viewer.rate, "probing" if viewer.rate < self.ceiling else "steady"
-
-    def _encoder_yield(self, now_s: float) -> float:
-        """What the encoder sent over the rate it was asked for, in [MIN_YIELD, 1]."""
-        sent = self.sent.bits_per_second(now_s, YIELD_WINDOW_S)
-        if sent <= 0:
-            return 1.0
-        return min(1.0, max(MIN_YIELD, sent / self._told))
 
     def _react(self, viewer: _Viewer, sample: LinkSample, now_s: float) -> None:
         if sample.stalled:
