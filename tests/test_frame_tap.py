@@ -129,3 +129,21 @@ def test_a_page_thumbnail_is_the_box_mean_and_bad_ones_are_refused() -> None:
 
 def b64(array: np.ndarray) -> str:
     return base64.b64encode(array.tobytes()).decode()
+
+
+def test_frames_between_counts_the_tapped_frames_and_the_times_kept_are_bounded(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setattr(FrameThumbs, "KEEP_TIMES", 5)
+    thumbs = FrameThumbs()
+    frame = np.zeros((8, 8, 4), dtype=np.uint8)
+    t0 = time.monotonic()
+    for frame_id in range(3):
+        thumbs(frame_id, frame)
+    t1 = time.monotonic()
+    assert thumbs.frames_between(t0, t1 + 1e-6) == 3
+    assert thumbs.frames_between(t1 + 1, t1 + 2) == 0
+    for frame_id in range(3, 20):
+        thumbs(frame_id, frame)
+    assert len(thumbs.times) == 5  # a long session keeps the last frames' times only
+    assert thumbs.frames_between(t0, time.monotonic() + 1e-6) == 5

@@ -9,7 +9,8 @@ import contextlib
 import io
 import os
 import threading
-from collections import OrderedDict
+import time
+from collections import OrderedDict, deque
 from typing import Any, Protocol
 
 import numpy as np
@@ -74,7 +75,7 @@ def decode_data_url(url: str) -> npt.NDArray[np.uint8]:
 
 class FrameThumbs:
     """A frame tap (StreamingSession's ``frame_tap``): thumbnails of the last frames the
-    session encoded, by frame id.
+    session encoded, by frame id, with their arrival times.
 
     The tap runs on the encoding thread, so it only copies the frame (well under a
     millisecond at 1280x720); a thread of lower priority makes the thumbnails. Making
@@ -85,6 +86,7 @@ class FrameThumbs:
 
     MAX_WAITING = 8
     IDLE_EXIT_S = 1.0  # the thumbnail thread ends after this long without frames
+    KEEP_TIMES = 36_000  # arrival times kept: 20 minutes at 30 fps
     NICE = 10
 
     def __init__(self, keep: int = KEEP_FRAMES) -> None:
@@ -95,11 +97,15 @@ class FrameThumbs:
         self._waiting: OrderedDict[int, npt.NDArray[np.uint8]] = OrderedDict()
         self._worker: threading.Thread | None = None
         self.thumbs: OrderedDict[int, Thumb] = OrderedDict()
+        # Arrival times for frames_between(); bounded, or a long session with a frame
+        # tap would keep a float per frame for ever.
+        self.times: deque[float] = deque(maxlen=self.KEEP_TIMES)
 
     def __call__(self, frame_id: int, color: npt.NDArray[np.uint8]) -> None:
         copy = np.array(color, copy=True)  # the view is only valid during the call
         with self._lock:
             self._waiting[frame_id] = copy
+            self.times.append(time.monotonic())
             over = len(self._waiting) > self.MAX_WAITING
             if self._worker is None:
                 self._worker = threading.Thread(target=self._run, name="frame-thumbs", daemon=True)
@@ -118,6 +124,12 @@ class FrameThumbs:
         self._settle()
         with self._lock:
             return list(self.thumbs.items())
+
+    def frames_between(self, t0: float, t1: float) -> int:
+        """Frames the tap took between two ``time.monotonic()`` readings (within the
+        last ``KEEP_TIMES`` frames)."""
+        with self._lock:
+            return sum(1 for t in self.times if t0 <= t < t1)
 
     def _make_next(self) -> bool:
         """The oldest waiting frame's thumbnail; the caller holds ``_work``."""
