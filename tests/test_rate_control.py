@@ -125,7 +125,7 @@ def test_a_step_down_and_up_is_followed() -> None:
     # rate is GCC's margin over the last congestion, the climb is the quick one and
     # finds the link's limit again by passing it (with a 15 % margin the climb stayed
     # careful until the step up and lost nothing here, but came back too late when a
-    # congestion fell just before the step: the test above).
+    # congestion fell just before the step: the test below).
     assert len([t for t in run.lost_at if t >= 12]) <= 1, run.lost_at
 
 
