@@ -16,6 +16,8 @@ from server.frames.frame import Size
 from server.train.loop import DataMix, TrainConfig, train
 from server.train.mix import build_mix
 from server.train.photo_dataset import (
+    PHOTO_SOURCES,
+    SCREENSHOT_SOURCES,
     Camera2D,
     PhotoSpec,
     area_sample_affine,
@@ -40,7 +42,8 @@ def _noise_picture(seed: int, size: int = 400) -> np.ndarray:
 def content(tmp_path: Path) -> Path:
     """A content folder like `upcast eval content --fetch` makes: train and held_out
     pictures per source; the held-out ones pure red, so any leak shows."""
-    for source, size in (("mate-nature", 400), ("plasma-photos", 400), ("neverball-shots", 256)):
+    sizes = [(s.name, 400) for s in PHOTO_SOURCES] + [(s.name, 256) for s in SCREENSHOT_SOURCES]
+    for source, size in sizes:
         for i in range(2):
             train_dir = tmp_path / source / "train"
             train_dir.mkdir(parents=True, exist_ok=True)

@@ -66,6 +66,16 @@ def test_manifest_picks_the_largest_size_and_names_game_shots_by_set() -> None:
         source_named("neverball-shots"), ["./usr/share/games/neverball/shot-easy/peasy.jpg"]
     )
     assert list(shots) == ["easy_peasy"]
+    lxqt = pick_members(
+        source_named("lxqt-photos"),
+        [
+            "./usr/share/lxqt/wallpapers/fog.jpg",
+            "./usr/share/lxqt/wallpapers/triangles.png",  # drawn, not listed
+            "./usr/share/lxqt/wallpapers/fog-logo.png",
+            "./usr/share/lxqt/themes/frost/preview.png",
+        ],
+    )
+    assert list(lxqt) == ["fog"]
     assert all(len(s.sha256) == 64 and s.url.endswith(".deb") for s in SOURCES)
 
 

@@ -52,6 +52,14 @@ _PLASMA_PHOTOS = (
     "OneStandsOut|Path|summer_1am"
 )
 
+# Photographs among LXQt's wallpapers (the others are drawn: origami, triangles,
+# waves, logos), chosen the same way. Several are close-ups with a soft background,
+# which the other two sources have few of.
+_LXQT_PHOTOS = (
+    "Butterfly-Kenneth-Wimer|Valendas|after-the-rain|appleflower|beam|butterfly|cloud|drop|"
+    "flowers|fog|this-is-not-windows"
+)
+
 SOURCES: tuple[ContentSource, ...] = (
     ContentSource(
         name="mate-nature",
@@ -74,6 +82,16 @@ SOURCES: tuple[ContentSource, ...] = (
         kind="photograph",
         pattern=rf"usr/share/wallpapers/(?P<name>{_PLASMA_PHOTOS})/contents/images/"
         r"(?P<w>\d+)x(?P<h>\d+)\.(?:jpg|png)",
+    ),
+    ContentSource(
+        name="lxqt-photos",
+        package="lxqt-themes",
+        version="1.2.0-1",
+        pool_path="pool/main/l/lxqt-themes/lxqt-themes_1.2.0-1_all.deb",
+        sha256="d518df36b515b09d36cb00b12645dd8ce170bb82bb0966297741905ce3edc8e1",
+        size=25778012,
+        kind="photograph",
+        pattern=rf"usr/share/lxqt/wallpapers/(?P<name>{_LXQT_PHOTOS})\.(?:jpg|png)",
     ),
     ContentSource(
         # Level screenshots of Neverball (256x256 renders of its textured levels).

@@ -71,6 +71,7 @@ class PictureSource:
 PHOTO_SOURCES = (
     PictureSource("mate-nature", "128x128", (1.5, 2.5)),
     PictureSource("plasma-photos", "128x128", (1.5, 2.5)),
+    PictureSource("lxqt-photos", "128x128", (1.5, 2.5)),
 )
 SCREENSHOT_SOURCES = (PictureSource("neverball-shots", "64x64", (1.25, 1.6)),)
 
