@@ -109,9 +109,7 @@ def run_suite(
                     "psnr_db": psnr,
                     "psnr_per_frame": [float(v) for v in curve],
                     "measured_frames": list(span),
-                    "worst_image_psnr_db": float(
-                        np.min(np.mean(np.asarray(r.psnr)[:, span[0] : span[1]], axis=1))
-                    ),
+                    "worst_image_psnr_db": float(np.min(_image_means(r.psnr, span))),
                     "psnr_by_source": _by_source(images, r.psnr, span),
                     "psnr_by_image": _by_image(images, r.psnr, span),
                 }
@@ -148,9 +146,8 @@ def _by_source(
 ) -> dict[str, float]:
     """Mean PSNR over the measured frames per content source (the folder above an
     image's split folder: mate-nature, plasma-photos, ...), in the order first met."""
-    per_image = np.mean(np.asarray(psnr, dtype=np.float64)[:, span[0] : span[1]], axis=1)
     sources: dict[str, list[float]] = {}
-    for path, value in zip(images, per_image, strict=True):
+    for path, value in zip(images, _image_means(psnr, span), strict=True):
         sources.setdefault(path.parent.parent.name, []).append(float(value))
     return {name: float(np.mean(values)) for name, values in sources.items()}
 
@@ -161,11 +158,18 @@ def _by_image(
     """Mean PSNR over the measured frames per photograph, keyed ``source/name`` like
     the section's ``images``: the issue's margins hold on every held-out sequence, and
     a mean over sources can hide one that misses."""
-    per_image = np.mean(np.asarray(psnr, dtype=np.float64)[:, span[0] : span[1]], axis=1)
     return {
         f"{path.parent.parent.name}/{path.name}": float(value)
-        for path, value in zip(images, per_image, strict=True)
+        for path, value in zip(images, _image_means(psnr, span), strict=True)
     }
+
+
+def _image_means(psnr: list[list[float]], span: tuple[int, int]) -> npt.NDArray[np.float64]:
+    """Each image's mean PSNR over the measured frames ``[start, end)``."""
+    means: npt.NDArray[np.float64] = np.asarray(psnr, dtype=np.float64)[:, span[0] : span[1]].mean(
+        axis=1
+    )
+    return means
 
 
 def measured_span(kind: str, length: int, measure_from: int) -> tuple[int, int]:
