@@ -513,6 +513,27 @@ def test_output_stays_inside_the_inputs_local_range(
             assert np.abs(out - level).max() <= 1, (level, i)
 
 
+@pytest.mark.parametrize("name", ["unet", "unetpp"])
+def test_an_angled_filtered_edge_gets_no_halo(
+    name: str, shipped: dict[str, NeuralUpscaler]
+) -> None:
+    """A hard 64|191 edge at a sub-pixel position and 0-60 degrees, rendered box-filtered
+    with the jitter and panned: samples between the levels along it, which the
+    pixel-aligned step lacks, never come out past the input's range."""
+    from server.frames.frame import FrameFlags
+    from tests.test_temporal_reset import EDGE_ANGLES, PHOTO_DISPLAY, _photo_pan, angled_edge
+
+    up = shipped[name]
+    for angle in EDGE_ANGLES:
+        up.reset()
+        src = angled_edge(angle)
+        for i in range(6):
+            flags = FrameFlags.RESET if i == 0 else FrameFlags.NONE
+            frame, _ = _photo_pan(src, i, 0.37, flags)
+            out = to_uint8(up.upscale(frame, PHOTO_DISPLAY)).astype(int)
+            assert out.min() >= 64 and out.max() <= 191, (angle, i, out.min(), out.max())
+
+
 def test_fresh_start_trains_the_frame_without_history(tmp_path: Path) -> None:
     from server.train import loop
     from server.train.loop import TrainConfig, train
