@@ -133,6 +133,17 @@ def test_predicted_ticks_are_presented_flagged_and_close_to_the_render(pipe: Pip
     assert pipe.worker.status()["predicted"] == 4
 
 
+def test_the_periodic_log_line_gives_the_rate_and_counts_not_the_lists(pipe: Pipe) -> None:
+    """The worker's line every 10 s: frame rate over the interval and the counters; the
+    list of upscalers (the control API's status has it) repeated each time was noise."""
+    sent, _ = ticks("moving_objects", 8)
+    pipe.run(sent)
+    line = pipe.worker.progress(frames_before=0, interval_s=2.0)
+    assert line.startswith("bilinear -> 320x180: 4.0 fps, 8 frames, 0 errors"), line
+    assert "predicted 4, refused 0, errors 0" in line
+    assert "bicubic" not in line and "[" not in line
+
+
 def test_a_predicted_tick_before_any_render_is_skipped_not_fatal(pipe: Pipe) -> None:
     sent, _ = ticks("slow_pan", 4)
     shown = pipe.run([sent[1], *sent])

@@ -198,13 +198,31 @@ class UpscaleWorker:
             "sanitized_frames": self.host.sanitized_frames,
         }
 
+    def progress(self, frames_before: int, interval_s: float) -> str:
+        """One line for the periodic log: the method, the frame rate over the interval
+        and the counters, without the status' lists (the control API has those)."""
+        s, p = self.stats, self.prediction.stats
+        fps = (s.frames - frames_before) / interval_s if interval_s > 0 else 0.0
+        cache = f", cache {self.host.cache_policy}" if self.host.cache_policy else ""
+        line = (
+            f"{self.host.name}{cache} -> {self.host.display_size}: {fps:.1f} fps, "
+            f"{s.frames} frames, {s.errors} errors, {s.output_drops} output drops, "
+            f"{s.switches} switches"
+        )
+        if self.prediction.predictor_name is not None and p.predicted + p.refused + p.errors:
+            line += f"; predicted {p.predicted}, refused {p.refused}, errors {p.errors}"
+        if self.host.sanitized_frames:
+            line += f"; {self.host.sanitized_frames} frames with NaN/Inf replaced"
+        return line
+
     def run(self, stop: threading.Event, control: ControlServer | None = None) -> None:
         last_report = time.monotonic()
+        frames_at_report = self.stats.frames
         while not stop.is_set():
             if control is not None:
                 self.handle_control(control)
             self.process_next(timeout_s=0.1)
             now = time.monotonic()
             if now - last_report >= 10.0:
-                last_report = now
-                log.info("worker: %s", self.status())
+                log.info("worker: %s", self.progress(frames_at_report, now - last_report))
+                last_report, frames_at_report = now, self.stats.frames
