@@ -17,11 +17,13 @@ from PIL import Image
 
 from server.cli import main
 from server.eval import real_content_fetch
+from server.eval.real_content import large_enough, load_rgb
 from server.eval.real_content_fetch import data_tarball, fetch_all
 from server.eval.real_content_sequences import PAN_PER_FRAME, build_sequence
 from server.eval.real_content_sources import (
     SOURCES,
     held_out_images,
+    image_source,
     pick_members,
     source_named,
     split_names,
@@ -197,7 +199,44 @@ def test_only_photograph_sources_are_evaluated(tmp_path: Path) -> None:
         (tmp_path / folder / "held_out").mkdir(parents=True)
         Image.fromarray(_photo(0, (8, 8))).save(tmp_path / folder / "held_out" / "a.png")
     found = held_out_images(tmp_path)
-    assert [p.parent.parent.name for p in found] == ["mate-nature", "mine"]
+    assert [image_source(p) for p in found] == ["mate-nature", "mine"]
+
+
+def test_a_folder_of_your_own_pictures_is_evaluated_whole(tmp_path: Path) -> None:
+    """A user's folder: its own images and a subfolder's, in any mode PIL reads (grey,
+    RGBA), reported under their folder; a fetched source gives only its held-out images,
+    never the ones training uses; other files are ignored."""
+    mine = tmp_path / "holiday"
+    (mine / "trip").mkdir(parents=True)
+    Image.fromarray(_photo(0)).convert("L").save(mine / "grey.jpg")
+    Image.fromarray(_photo(1)).convert("RGBA").save(mine / "alpha.png")
+    Image.fromarray(_photo(2)).save(mine / "trip" / "beach.JPG")
+    (mine / "notes.txt").write_text("not a picture")
+    for split in ("train", "held_out"):
+        (mine / "mate-nature" / split).mkdir(parents=True)
+        Image.fromarray(_photo(3)).save(mine / "mate-nature" / split / f"{split}.png")
+    found = held_out_images(mine)
+    names = [f"{image_source(p)}/{p.name}" for p in found]
+    assert names == [
+        "holiday/alpha.png", "holiday/grey.jpg", "mate-nature/held_out.png", "trip/beach.JPG"
+    ]  # fmt: skip
+    assert all(load_rgb(p).shape[2] == 3 for p in found)
+
+
+def test_pictures_smaller_than_the_crop_are_left_out_with_the_reason(tmp_path: Path) -> None:
+    """A picture smaller than the crop would be compared with an upsample of itself:
+    left out, named; with none left the evaluation stops before rendering."""
+    Image.fromarray(_photo(0, (220, 300))).save(tmp_path / "big.png")
+    Image.fromarray(_photo(1, (60, 80))).save(tmp_path / "small.png")
+    kept, left_out = large_enough(held_out_images(tmp_path), Size(160, 96))
+    assert [p.name for p in kept] == ["big.png"]
+    assert len(left_out) == 1 and "small.png (80x60): smaller than the 160x96 crop" in left_out[0]
+    (tmp_path / "big.png").unlink()
+    with pytest.raises(SystemExit, match=r"small\.png"):
+        main(
+            ["eval", "upscalers", "--json", str(tmp_path / "x.json"), "--scenes", "none",
+             "--real-content", str(tmp_path), "--real-display-size", "160x96"]
+        )  # fmt: skip
 
 
 def test_eval_refuses_a_missing_content_dir(tmp_path: Path) -> None:

@@ -26,7 +26,14 @@ from PIL import Image
 
 from server.bench.report import summarize_ms
 from server.eval.methods import MethodSpec
-from server.eval.real_content_sequences import KINDS, Sequence, build_sequence
+from server.eval.real_content_sequences import (
+    KINDS,
+    PAD,
+    Sequence,
+    build_sequence,
+    source_scale,
+)
+from server.eval.real_content_sources import image_source
 from server.frames.frame import Size
 from server.ops.progress import elapsed_and_left, progress
 from upscalers import metrics
@@ -54,6 +61,25 @@ def load_rgb(path: Path) -> U8:
         return np.asarray(image.convert("RGB"), dtype=np.uint8)
 
 
+def large_enough(images: list[Path], display: Size) -> tuple[list[Path], list[str]]:
+    """(the images that cover the display crop and its padding at one source pixel per
+    display pixel or more, why each other one is left out): a smaller picture's
+    "truth" would be an upsample of it, which flatters every method."""
+    kept: list[Path] = []
+    left_out: list[str] = []
+    for path in images:
+        with Image.open(path) as image:  # reads the header only
+            size = Size(*image.size)
+        if source_scale(size, display) >= 1.0:
+            kept.append(path)
+        else:
+            need = Size(display.width + 2 * PAD, display.height + 2 * PAD)
+            left_out.append(
+                f"{path} ({size}): smaller than the {display} crop with its padding ({need})"
+            )
+    return kept, left_out
+
+
 def run_suite(
     images: list[Path],
     methods: list[MethodSpec],
@@ -67,7 +93,7 @@ def run_suite(
     pictures = [load_rgb(p) for p in images]
     cases: list[dict[str, Any]] = []
     section: dict[str, Any] = {
-        "images": [f"{p.parent.parent.name}/{p.name}" for p in images],
+        "images": [f"{image_source(p)}/{p.name}" for p in images],
         "display_size": str(display),
         "frames": frames,
         "measure_from": measure_from,
@@ -148,7 +174,7 @@ def _by_source(
     image's split folder: mate-nature, plasma-photos, ...), in the order first met."""
     sources: dict[str, list[float]] = {}
     for path, value in zip(images, _image_means(psnr, span), strict=True):
-        sources.setdefault(path.parent.parent.name, []).append(float(value))
+        sources.setdefault(image_source(path), []).append(float(value))
     return {name: float(np.mean(values)) for name, values in sources.items()}
 
 
@@ -159,7 +185,7 @@ def _by_image(
     the section's ``images``: the issue's margins hold on every held-out sequence, and
     a mean over sources can hide one that misses."""
     return {
-        f"{path.parent.parent.name}/{path.name}": float(value)
+        f"{image_source(path)}/{path.name}": float(value)
         for path, value in zip(images, _image_means(psnr, span), strict=True)
     }
 

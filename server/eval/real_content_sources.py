@@ -142,29 +142,43 @@ def split_names(names: list[str], held_out_fraction: float) -> tuple[list[str], 
 
 
 def held_out_images(content_dir: Path, kind: str = "photograph") -> list[Path]:
-    """The held-out images of every source of ``kind`` under ``content_dir``, or of
-    every subfolder's ``held_out`` when the folder is not a fetched one (tests,
-    your own pictures); sorted, so the suite's order is fixed."""
+    """The images to evaluate under ``content_dir``, sorted so the suite's order is
+    fixed: each fetched source's ``held_out`` images (of ``kind``); a folder of your
+    own pictures (none of them trained on) is taken whole, its own images and those of
+    each subfolder without a ``held_out`` one."""
     if not content_dir.is_dir():
         raise FileNotFoundError(
             f"content directory {content_dir} not found; fetch it with "
-            f"`upcast eval content --fetch --dir {content_dir}`"
+            f"`upcast eval content --fetch --dir {content_dir}`, or name a folder of "
+            "your own pictures"
         )
     known = {s.name: s for s in SOURCES}
-    found: list[Path] = []
+    found = _images_in(content_dir)
     for sub in sorted(p for p in content_dir.iterdir() if p.is_dir()):
         source = known.get(sub.name)
         if source is not None and source.kind != kind:
             continue
-        found += sorted(
-            p for p in (sub / HELD_OUT_DIR).glob("*") if p.suffix.lower() in IMAGE_SUFFIXES
-        )
+        held_out = sub / HELD_OUT_DIR
+        found += _images_in(held_out if source is not None or held_out.is_dir() else sub)
     if not found:
         raise FileNotFoundError(
-            f"no held-out images under {content_dir}/*/{HELD_OUT_DIR}/; fetch them with "
+            f"no images under {content_dir} ({', '.join(sorted(IMAGE_SUFFIXES))}), in it, "
+            f"in its subfolders or in their {HELD_OUT_DIR}/; fetch the project's with "
             f"`upcast eval content --fetch --dir {content_dir}`"
         )
     return found
+
+
+def _images_in(folder: Path) -> list[Path]:
+    if not folder.is_dir():
+        return []
+    return sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
+
+
+def image_source(path: Path) -> str:
+    """What an evaluated image is reported under: its fetched source (the folder above
+    ``held_out``) or the folder it sits in."""
+    return path.parent.parent.name if path.parent.name == HELD_OUT_DIR else path.parent.name
 
 
 IMAGE_SUFFIXES = frozenset({".jpg", ".jpeg", ".png"})

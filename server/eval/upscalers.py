@@ -117,8 +117,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=Path,
         default=None,
         metavar="DIR",
-        help="add the held-out photographs of DIR (`upcast eval content --fetch --dir DIR`): "
-        "first frame, pan, zoom, still camera and a cut, per scale",
+        help="add the held-out photographs of DIR (`upcast eval content --fetch --dir DIR`), "
+        "or every picture of a folder of your own (and its subfolders'): first frame, pan, "
+        "zoom, still camera and a cut, per scale; pictures smaller than the crop are left out",
     )
     parser.add_argument("--real-display-size", default="640x360", help="photograph crops")
     parser.add_argument("--real-frames", type=int, default=32, help="frames per photo sequence")
@@ -165,10 +166,19 @@ def _parse(args: argparse.Namespace) -> tuple[list[str], list[float], list[Metho
     display = Size.parse(args.display_size)
     if args.real_content is not None:
         try:
-            held_out_images(args.real_content)  # a missing folder fails before rendering
-            Size.parse(args.real_display_size)
+            from server.eval.real_content import large_enough
+
+            # A missing folder, or one with no picture large enough, fails before rendering.
+            images = held_out_images(args.real_content)
+            real_display = Size.parse(args.real_display_size)
         except (FileNotFoundError, ValueError) as e:
             raise SystemExit(str(e)) from None
+        if not large_enough(images, real_display)[0]:
+            raise SystemExit(
+                f"no image under {args.real_content} covers the {real_display} crop and its "
+                "padding at one source pixel per display pixel: "
+                + "; ".join(large_enough(images, real_display)[1][:3])
+            )
         if not 2 <= args.real_measure_from < args.real_frames:
             raise SystemExit("--real-measure-from must be at least 2 and below --real-frames")
     try:
@@ -357,15 +367,18 @@ def _real_content(
 ) -> str:
     """Run the held-out photographs after the game scenes (whose ratios and checks are
     taken on the game's cases only); their cases, section, checks and table."""
-    from server.eval.real_content import run_suite
+    from server.eval.real_content import large_enough, run_suite
     from server.eval.real_content_report import real_content_checks, real_content_table
 
-    images = held_out_images(args.real_content)
+    display = Size.parse(args.real_display_size)
+    images, left_out = large_enough(held_out_images(args.real_content), display)
+    for why in left_out:
+        progress(f"real content: left out {why}")
     progress(f"real content: {len(images)} held-out photographs from {args.real_content}")
     cases, section = run_suite(
         images,
         methods,
-        Size.parse(args.real_display_size),
+        display,
         scales,
         args.real_frames,
         args.real_measure_from,
