@@ -231,6 +231,9 @@ def test_pictures_smaller_than_the_crop_are_left_out_with_the_reason(tmp_path: P
     kept, left_out = large_enough(held_out_images(tmp_path), Size(160, 96))
     assert [p.name for p in kept] == ["big.png"]
     assert len(left_out) == 1 and "small.png (80x60): smaller than the 160x96 crop" in left_out[0]
+    (tmp_path / "broken.jpg").write_bytes(b"not a jpeg")
+    kept, left_out = large_enough(held_out_images(tmp_path), Size(160, 96))
+    assert [p.name for p in kept] == ["big.png"] and "broken.jpg: not a picture" in left_out[0]
     (tmp_path / "big.png").unlink()
     with pytest.raises(SystemExit, match=r"small\.png"):
         main(

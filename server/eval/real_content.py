@@ -64,12 +64,17 @@ def load_rgb(path: Path) -> U8:
 def large_enough(images: list[Path], display: Size) -> tuple[list[Path], list[str]]:
     """(the images that cover the display crop and its padding at one source pixel per
     display pixel or more, why each other one is left out): a smaller picture's
-    "truth" would be an upsample of it, which flatters every method."""
+    "truth" would be an upsample of it, which flatters every method; a file that is
+    not a picture is left out too, named, rather than ending the run."""
     kept: list[Path] = []
     left_out: list[str] = []
     for path in images:
-        with Image.open(path) as image:  # reads the header only
-            size = Size(*image.size)
+        try:
+            with Image.open(path) as image:  # reads the header only
+                size = Size(*image.size)
+        except (OSError, ValueError) as e:  # PIL's UnidentifiedImageError is an OSError
+            left_out.append(f"{path}: not a picture this can read ({e})")
+            continue
         if source_scale(size, display) >= 1.0:
             kept.append(path)
         else:

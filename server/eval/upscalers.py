@@ -173,11 +173,11 @@ def _parse(args: argparse.Namespace) -> tuple[list[str], list[float], list[Metho
             real_display = Size.parse(args.real_display_size)
         except (FileNotFoundError, ValueError) as e:
             raise SystemExit(str(e)) from None
-        if not large_enough(images, real_display)[0]:
+        usable, left_out = large_enough(images, real_display)
+        if not usable:
             raise SystemExit(
-                f"no image under {args.real_content} covers the {real_display} crop and its "
-                "padding at one source pixel per display pixel: "
-                + "; ".join(large_enough(images, real_display)[1][:3])
+                f"no image under {args.real_content} can be evaluated at {real_display}: "
+                + "; ".join(left_out[:3])
             )
         if not 2 <= args.real_measure_from < args.real_frames:
             raise SystemExit("--real-measure-from must be at least 2 and below --real-frames")
