@@ -175,8 +175,9 @@ def run_suite(
 def _by_source(
     images: list[Path], psnr: list[list[float]], span: tuple[int, int]
 ) -> dict[str, float]:
-    """Mean PSNR over the measured frames per content source (the folder above an
-    image's split folder: mate-nature, plasma-photos, ...), in the order first met."""
+    """Mean PSNR over the measured frames per content source (``image_source``:
+    mate-nature, plasma-photos, ..., or the folder of your own pictures), in the order
+    first met."""
     sources: dict[str, list[float]] = {}
     for path, value in zip(images, _image_means(psnr, span), strict=True):
         sources.setdefault(image_source(path), []).append(float(value))
@@ -197,9 +198,8 @@ def _by_image(
 
 def _image_means(psnr: list[list[float]], span: tuple[int, int]) -> npt.NDArray[np.float64]:
     """Each image's mean PSNR over the measured frames ``[start, end)``."""
-    means: npt.NDArray[np.float64] = np.asarray(psnr, dtype=np.float64)[:, span[0] : span[1]].mean(
-        axis=1
-    )
+    per_frame = np.asarray(psnr, dtype=np.float64)[:, span[0] : span[1]]
+    means: npt.NDArray[np.float64] = per_frame.mean(axis=1)
     return means
 
 

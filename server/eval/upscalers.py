@@ -141,7 +141,11 @@ def _csv(text: str) -> list[str]:
     return [p.strip() for p in text.split(",") if p.strip()]
 
 
-def _parse(args: argparse.Namespace) -> tuple[list[str], list[float], list[MethodSpec], Size]:
+def _parse(
+    args: argparse.Namespace,
+) -> tuple[list[str], list[float], list[MethodSpec], Size, list[Path]]:
+    """Scenes, scales, methods, display size and the real-content pictures to run
+    (none without ``--real-content``), each checked before anything renders."""
     scenes = [] if args.scenes == "none" else parse_scene_list(args.scenes)
     if not scenes and args.real_content is None:
         raise SystemExit("--scenes none leaves nothing to evaluate without --real-content")
@@ -164,28 +168,36 @@ def _parse(args: argparse.Namespace) -> tuple[list[str], list[float], list[Metho
     if args.frames <= WARMUP_CALLS:
         raise SystemExit(f"--frames must be above {WARMUP_CALLS} (the untimed warm-up calls)")
     display = Size.parse(args.display_size)
-    if args.real_content is not None:
-        try:
-            from server.eval.real_content import large_enough
-
-            # A missing folder, or one with no picture large enough, fails before rendering.
-            images = held_out_images(args.real_content)
-            real_display = Size.parse(args.real_display_size)
-        except (FileNotFoundError, ValueError) as e:
-            raise SystemExit(str(e)) from None
-        usable, left_out = large_enough(images, real_display)
-        if not usable:
-            raise SystemExit(
-                f"no image under {args.real_content} can be evaluated at {real_display}: "
-                + "; ".join(left_out[:3])
-            )
-        if not 2 <= args.real_measure_from < args.real_frames:
-            raise SystemExit("--real-measure-from must be at least 2 and below --real-frames")
+    images = _real_images(args) if args.real_content is not None else []
     try:
         parse_mip_bias(args.mip_bias, display, display)  # a bad value fails before rendering
     except ValueError as e:
         raise SystemExit(str(e)) from None
-    return scenes, scales, methods, display
+    return scenes, scales, methods, display, images
+
+
+def _real_images(args: argparse.Namespace) -> list[Path]:
+    """The pictures of ``--real-content`` large enough for ``--real-display-size``;
+    says which are left out and why. A missing folder, or one with nothing usable,
+    stops here, before the game scenes render."""
+    from server.eval.real_content import large_enough
+
+    try:
+        images = held_out_images(args.real_content)
+        display = Size.parse(args.real_display_size)
+    except (FileNotFoundError, ValueError) as e:
+        raise SystemExit(str(e)) from None
+    if not 2 <= args.real_measure_from < args.real_frames:
+        raise SystemExit("--real-measure-from must be at least 2 and below --real-frames")
+    usable, left_out = large_enough(images, display)
+    if not usable:
+        raise SystemExit(
+            f"no image under {args.real_content} can be evaluated at {display}: "
+            + "; ".join(left_out[:3])
+        )
+    for why in left_out:
+        progress(f"real content: left out {why}")
+    return usable
 
 
 def _start_time(scene: str, measure_from: int, fps: float) -> float:
@@ -260,7 +272,7 @@ def _mean(values: list[float]) -> float | None:
 
 
 def run(args: argparse.Namespace) -> int:
-    scenes, scales, methods, display = _parse(args)
+    scenes, scales, methods, display, real_images = _parse(args)
     set_cpu_threads(args.threads)
     report = BenchReport(
         "eval_upscalers",
@@ -334,7 +346,9 @@ def run(args: argparse.Namespace) -> int:
 
     table = markdown_table(report.cases, checks) if report.cases else ""
     if args.real_content is not None:
-        table = "\n\n".join(filter(None, [table, _real_content(args, report, methods, scales)]))
+        table = "\n\n".join(
+            filter(None, [table, _real_content(args, report, methods, scales, real_images)])
+        )
     report.write(args.json)
     print(table)
     if args.table:
@@ -363,17 +377,19 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _real_content(
-    args: argparse.Namespace, report: BenchReport, methods: list[MethodSpec], scales: list[float]
+    args: argparse.Namespace,
+    report: BenchReport,
+    methods: list[MethodSpec],
+    scales: list[float],
+    images: list[Path],
 ) -> str:
-    """Run the held-out photographs after the game scenes (whose ratios and checks are
-    taken on the game's cases only); their cases, section, checks and table."""
-    from server.eval.real_content import large_enough, run_suite
+    """Run the held-out photographs ``images`` (``_real_images``) after the game scenes
+    (whose ratios and checks are taken on the game's cases only); their cases, section,
+    checks and table."""
+    from server.eval.real_content import run_suite
     from server.eval.real_content_report import real_content_checks, real_content_table
 
     display = Size.parse(args.real_display_size)
-    images, left_out = large_enough(held_out_images(args.real_content), display)
-    for why in left_out:
-        progress(f"real content: left out {why}")
     progress(f"real content: {len(images)} held-out photographs from {args.real_content}")
     cases, section = run_suite(
         images,
