@@ -43,12 +43,14 @@ from av.video.frame import PictureType, VideoFrame
 from av.video.reformatter import ColorRange, Colorspace, VideoReformatter
 
 from server.media.cmaf import (
+    MOOF_SIZE,
     AvcConfig,
     annexb_to_avcc,
     init_segment,
     media_fragment,
     split_annexb,
 )
+from server.media.filler import pad_sample
 
 TIMESCALE = 1_000_000  # fMP4 and encoder clock in microseconds, so pts_us is written as-is
 
@@ -152,6 +154,10 @@ class EncodedFrame:
     encode_ms: float  # whole call on this thread: RGB->YUV + x264 + boxing
     convert_ms: float  # of which RGB->YUV420 (swscale)
     x264_ms: float  # of which x264
+    # The size the session asked every frame to reach while it probes the link (0: not
+    # probing), and how many bytes of filler data this frame carries to reach it.
+    padded_to: int = 0
+    filler_bytes: int = 0
 
 
 class VideoEncoder:
@@ -174,6 +180,7 @@ class VideoEncoder:
         self._last_keyframe_pts_us: int | None = None
         self._bitrate = config.target_bitrate
         self._pending_bitrate: int | None = None
+        self._min_fragment_bytes = 0
         self.bitrate_changes = 0
         self.frames_in = 0
         self.fragments_out = 0
@@ -210,6 +217,12 @@ class VideoEncoder:
         rate = min(self.config.target_bitrate, max(MIN_BITRATE, int(bits_per_second)))
         self._pending_bitrate = rate
         return rate
+
+    def pad_frames_to(self, fragment_bytes: int) -> None:
+        """Make every coming fragment at least ``fragment_bytes`` long with filler data
+        (server/media/filler.py), 0 to stop: the session's link probe. Safe to call from
+        the event loop while another thread encodes: it only sets a number."""
+        self._min_fragment_bytes = max(0, int(fragment_bytes))
 
     def encode(self, rgb: npt.NDArray[np.uint8], frame_id: int, pts_us: int) -> EncodedFrame:
         """Encode one (H, W, 3) uint8 RGB frame; ``pts_us`` must increase.
@@ -262,9 +275,10 @@ class VideoEncoder:
             self.forced_keyframes += 1
 
         self._sequence += 1
-        fragment = media_fragment(
-            self._sequence, pts_us, cfg.frame_duration_us, annexb_to_avcc(annexb), keyframe
-        )
+        floor = self._min_fragment_bytes
+        sample = annexb_to_avcc(annexb)
+        padded = pad_sample(sample, floor - MOOF_SIZE - 8) if floor else sample
+        fragment = media_fragment(self._sequence, pts_us, cfg.frame_duration_us, padded, keyframe)
         self.fragments_out += 1
         end = time.perf_counter_ns()
         return EncodedFrame(
@@ -275,6 +289,8 @@ class VideoEncoder:
             encode_ms=(end - start) / 1e6,
             convert_ms=(t_x264 - t_convert) / 1e6,
             x264_ms=(t_box - t_x264) / 1e6,
+            padded_to=floor,
+            filler_bytes=len(padded) - len(sample),
         )
 
     def _take_keyframe_request(self, pts_us: int) -> bool:
