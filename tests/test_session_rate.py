@@ -2,8 +2,13 @@
 
 from __future__ import annotations
 
+import time
+
+import numpy as np
+
 from server.media.encode import MIN_BITRATE, EncoderConfig, VideoEncoder
 from server.session.feedback import FeedbackFields
+from server.session.link_probe import MAX_PROBE_S
 from server.session.session_rate import MIN_BITS_PER_PIXEL, RESTORE_FACTOR, SessionRate
 from server.session.viewer_input import FeedbackMessage, KeysMessage
 
@@ -95,3 +100,26 @@ def test_the_rate_is_on_the_sessions_metrics() -> None:
     assert registry.get_sample_value("upcast_video_bitrate_bps") == 250_000
     assert registry.get_sample_value("upcast_fps_divisor") == 1
     assert registry.get_sample_value("upcast_bitrate_changes_total") == 1
+
+
+def test_a_probe_pads_the_encoders_frames_for_its_duration_and_no_longer() -> None:
+    rate, state = make(bitrate=3_000_000)
+    controller = rate.controller
+    now = time.monotonic()  # frame_sent stamps frames on the monotonic clock
+    controller.input_seen("page", now)
+    target = controller.probe.start(1_000_000, controller.ceiling, ["page"], now)
+    rate.step(now)
+    assert state["probe_bps"] == round(target) == 1_250_000
+    pixels = np.full((H, W, 3), 128, np.uint8)  # a flat frame: x264 needs a few bytes
+    encoded = rate.encoder.encode(pixels, frame_id=1, pts_us=1)
+    # 1.25 Mbit/s over a 30 fps frame interval: 5208 bytes on the wire for this frame.
+    assert len(encoded.fragment) == encoded.padded_to == int(target / 8 / FPS)
+    assert encoded.filler_bytes > 4000
+    rate.frame_sent(encoded)
+    probe = controller.probe.current
+    assert probe is not None and list(probe.frames) == [1]  # the probe times this frame
+    # Past the probe's end (here, short of frames, its longest) the padding stops.
+    rate.step(now + MAX_PROBE_S + 0.01)
+    assert state["probe_bps"] == 0
+    after = rate.encoder.encode(pixels, frame_id=2, pts_us=2)
+    assert after.padded_to == 0 and after.filler_bytes == 0

@@ -24,6 +24,13 @@ is a visible stall every few seconds.
   (GCC's near-convergence mode: the link's limit is probably there), never
   above ``PROBE_HEADROOM`` times what the viewer received (an app-limited stream
   cannot prove more) nor the configured bitrate.
+- **Probe with padding** (link_probe.py): when that cap or the careful climb has
+  held the rate for ``PROBE_WAIT_S``, ``PROBE_AFTER_CUT_S`` after any decrease,
+  every frame is padded
+  for a fifth of a second so the path carries a known higher rate; what arrived
+  proves the link for ``PROBE_MEMORY_S`` (the cap rises to it) and the rate jumps
+  to ``PROBE_TRUST`` times it, past the careful climb near an old congestion
+  point that the link has now proved wider than (GCC's probe result).
 - **Nothing arrives** (reports without a new frame for a second while we send):
   the safe rate below, then up from there once frames flow.
 - **No feedback**: a player that sends input but no feedback (an old page), or
@@ -43,6 +50,7 @@ from dataclasses import dataclass, field
 
 from server.session.feedback import FeedbackFields
 from server.session.link_estimate import LinkEstimate, LinkSample, SendLog
+from server.session.link_probe import PROBE_S, LinkProbe
 
 log = logging.getLogger(__name__)
 
@@ -67,6 +75,16 @@ SILENT_PLAYER_S = 3.0  # input without any feedback for this long: an old page
 SAFE_FRACTION = 0.25
 JOIN_GRACE_S = 3.0  # a skip this soon after a player's first report is its joining
 CHANGE_STEP = 0.03  # tell the encoder only about changes larger than this
+PROBE_WAIT_S = 0.5  # the climb has been held by what was proven this long: probe
+PROBE_AFTER_CUT_S = 1.5  # no probe this soon after a decrease
+PROBE_MEMORY_S = 10.0  # what a probe proved raises the cap this long
+PROBE_TRUST = 0.9  # the rate jumps to this fraction of what a probe proved
+MIN_PROBE_STEP = 1.1  # a probe aims at least this far over the link, or none starts
+# The queue a probe builds past a full link is the probe's answer, not congestion: no
+# delay-based decrease from a probe's start until this long after its end (losses
+# and skips still decrease).
+PROBE_DRAIN_S = 1.0
+APP_LIMITED = 0.9  # what arrived is under this fraction of the rate: the picture is short
 
 
 def near_above(congestion_bps: float) -> float:
@@ -92,6 +110,9 @@ class _Viewer:
     last_sample: LinkSample | None = None
     decreases: int = 0
     overuse_reports: int = 0  # consecutive reports with a growing queue
+    probed_bps: float | None = None  # what the last probe proved, until probed_until_s
+    probed_until_s: float = 0.0
+    held_since_s: float | None = None  # the climb is held (capped or careful), since
 
 
 @dataclass(frozen=True)
@@ -103,6 +124,7 @@ class RateState:
     players: int
     delivered_bps: float | None
     queue_ms: float | None
+    probe_bps: float = 0.0  # the rate a running probe pads the stream to
 
 
 class RateController:
@@ -117,12 +139,21 @@ class RateController:
         self._spectators: dict[str, LinkEstimate] = {}
         self._last_update_s: float | None = None
         self._told = float(ceiling_bps)
+        self.probe = LinkProbe()
+        self._probe_started_s = -1e9
         self.state = RateState(int(ceiling_bps), "configured", 0, None, None)
 
     # -- what happens -------------------------------------------------------------
 
-    def frame_sent(self, pts_us: int, size: int, now_s: float) -> None:
+    def frame_sent(self, pts_us: int, size: int, now_s: float, padded_to: int = 0) -> None:
+        """A frame left: ``size`` bytes on the wire, ``padded_to`` > 0 where the
+        encoder padded it for a probe."""
         self.sent.add(pts_us, size, now_s)
+        self.probe.frame_sent(pts_us, size, padded_to, now_s)
+
+    def padding_bps(self, now_s: float) -> float:
+        """The rate the session should pad every frame to now (0: no probe runs)."""
+        return self.probe.padding_bps(now_s)
 
     def input_seen(self, source: str, now_s: float) -> None:
         """Any input from ``source``: it plays, whether or not it sends feedback."""
@@ -142,6 +173,9 @@ class RateController:
             viewer.first_report_s = now_s
         viewer.last_sample = viewer.estimate.report(fields, self.sent, now_s)
         self._react(viewer, viewer.last_sample, now_s)
+        proved = self.probe.report(source, fields.frames, now_s)
+        if proved is not None:
+            self._probed(viewer, proved, now_s)
 
     def forget(self, source: str) -> None:
         self._players.pop(source, None)
@@ -160,8 +194,12 @@ class RateController:
             rate, reason = min(rates)
         else:
             rate, reason = self.ceiling, "configured"
+        self.probe.expire(now_s, list(self._players))
+        self._maybe_probe(now_s)
         delivered, queue = self._worst_sample()
-        self.state = RateState(int(rate), reason, len(self._players), delivered, queue)
+        self.state = RateState(
+            int(rate), reason, len(self._players), delivered, queue, self.probe.padding_bps(now_s)
+        )
         # Small moves wait until they add up, except onto the floor or the ceiling.
         small = abs(rate - self._told) <= CHANGE_STEP * self._told
         if int(rate) == int(self._told) or (small and rate not in (self.floor, self.ceiling)):
@@ -174,6 +212,7 @@ class RateController:
         return self._told
 
     def _viewer_rate(self, viewer: _Viewer, now_s: float, dt: float) -> tuple[float, str]:
+        viewer_held_since, viewer.held_since_s = viewer.held_since_s, None
         if viewer.last_report_s is None:
             if now_s - viewer.first_seen_s >= SILENT_PLAYER_S:
                 viewer.rate = min(viewer.rate, self.safe)
@@ -194,8 +233,19 @@ class RateController:
             and (1 - NEAR_BELOW) * last <= viewer.rate <= last + near_above(last)
         )
         step = ADDITIVE_PER_S * last if near and last else INCREASE_PER_S * viewer.rate
+        # What arrived allows PROBE_HEADROOM over it (the encoder makes less than it is
+        # told); what a probe proved is the link itself, a rate the picture may use
+        # whole (a complex moment makes all of its target).
         proven = PROBE_HEADROOM * sample.delivered_bps + 0.05 * self.ceiling
+        if viewer.probed_bps is not None and now_s < viewer.probed_until_s:
+            proven = max(proven, viewer.probed_bps)
         target = min(self.ceiling, viewer.rate + step * min(dt, 1.0))
+        # Held: by what the link has shown, or to the careful climb near where it last
+        # gave out while the picture does not fill the rate (a stream that fills it
+        # tests the link itself). Either way only a probe can say it is wider now.
+        app_limited = sample.delivered_bps < APP_LIMITED * viewer.rate
+        if target > proven or (near and app_limited):
+            viewer.held_since_s = now_s if viewer_held_since is None else viewer_held_since
         # An app-limited stream cannot prove more than it sent; never lower it here.
         viewer.rate = max(viewer.rate, min(target, proven))
         return viewer.rate, "probing" if viewer.rate < self.ceiling else "steady"
@@ -218,6 +268,8 @@ class RateController:
         slower = sample.stretch is None or sample.stretch > STRETCH_OVERUSE
         growing = queue is not None and queue > QUEUE_OVERUSE_MS and sample.queue_rising and slower
         high = queue is not None and queue > QUEUE_HIGH_MS
+        if now_s - self._probe_started_s < PROBE_S + PROBE_DRAIN_S:
+            growing = high = False
         viewer.overuse_reports = viewer.overuse_reports + 1 if growing or high else 0
         congested = (
             viewer.overuse_reports >= OVERUSE_REPORTS
@@ -248,6 +300,7 @@ class RateController:
         # groups reset): no such point, the climb back is the quick one.
         by_delay = (growing or high) and sample.delivered_bps is not None
         viewer.congestion_rate = sample.delivered_bps if by_delay else None
+        viewer.probed_bps = None  # the link gave out: what a probe proved is past
         viewer.rate = max(self.floor, cut)
         viewer.last_decrease_s = now_s
         viewer.decreases += 1
@@ -260,6 +313,58 @@ class RateController:
             sample.skipped,
             "?" if delivered is None else f"{delivered / 1e6:.2f}",
         )
+
+    def _link_bps(self, viewer: _Viewer, now_s: float) -> float:
+        """What the viewer's link has shown it carries: the last second's arrivals, or
+        a recent probe's proof where that is more."""
+        sample = viewer.last_sample
+        delivered = sample.delivered_bps if sample is not None else None
+        link = delivered or 0.0
+        if viewer.probed_bps is not None and now_s < viewer.probed_until_s:
+            link = max(link, viewer.probed_bps)
+        return link
+
+    def _maybe_probe(self, now_s: float) -> None:
+        """Start a probe when the player with the lowest rate has been held (by what
+        its link has shown, or near its last congestion) for ``PROBE_WAIT_S``, not
+        just after a decrease."""
+        if not self._players or not self.probe.idle(now_s):
+            return
+        viewer = min(self._players.values(), key=lambda v: v.rate)
+        since = viewer.held_since_s
+        if since is None or now_s - since < PROBE_WAIT_S:
+            return
+        if now_s - viewer.last_decrease_s < PROBE_AFTER_CUT_S or viewer.rate >= self.ceiling:
+            return
+        link = self._link_bps(viewer, now_s)
+        if link <= 0 or min(self.ceiling, self.probe.gain * link) < MIN_PROBE_STEP * link:
+            return
+        reporting = [
+            source
+            for source, v in self._players.items()
+            if v.last_report_s is not None and now_s - v.last_report_s < STALE_S
+        ]
+        target = self.probe.start(link, self.ceiling, reporting, now_s)
+        self._probe_started_s = now_s
+        log.info(
+            "rate: probing %.2f Mbit/s (rate %.2f, link shown %.2f)",
+            target / 1e6,
+            viewer.rate / 1e6,
+            link / 1e6,
+        )
+
+    def _probed(self, viewer: _Viewer, proved: float, now_s: float) -> None:
+        if viewer.last_decrease_s >= self._probe_started_s:
+            return  # the probe congested this link: the decrease said what it carries
+        viewer.probed_bps = proved
+        viewer.probed_until_s = now_s + PROBE_MEMORY_S
+        last = viewer.congestion_rate
+        if last is not None and proved > last + near_above(last):
+            viewer.congestion_rate = None  # the link proved wider than where it gave out
+        jump = min(self.ceiling, PROBE_TRUST * proved)
+        if jump > viewer.rate:
+            viewer.rate = jump
+            log.info("rate: %.2f Mbit/s (a probe proved %.2f)", jump / 1e6, proved / 1e6)
 
     def _worst_sample(self) -> tuple[float | None, float | None]:
         delivered: float | None = None

@@ -12,6 +12,10 @@ frame instead (``frame_divisor`` 2), at twice the bits per frame, and goes back
 to every frame once the rate gives ``RESTORE_FACTOR`` times that floor. x264
 budgets bits per frame at the configured frame rate, so at divisor 2 the encoder
 is told twice the rate to spend the same bits per second.
+
+While the controller probes the link (link_probe.py) the encoder pads every frame
+to the probe's rate over the frame interval (H.264 filler data), and each frame
+sent tells the controller whether it was padded.
 """
 
 from __future__ import annotations
@@ -58,7 +62,9 @@ class SessionRate:
         self._publish_state()
 
     def frame_sent(self, encoded: EncodedFrame) -> None:
-        self.controller.frame_sent(encoded.pts_us, len(encoded.fragment), time.monotonic())
+        self.controller.frame_sent(
+            encoded.pts_us, len(encoded.fragment), time.monotonic(), encoded.padded_to
+        )
 
     def on_message(self, source: str, message: ViewerMessage) -> None:
         now = time.monotonic()
@@ -72,6 +78,7 @@ class SessionRate:
 
     def step(self, now_s: float) -> None:
         rate = self.controller.update(now_s)
+        self._pad(now_s)
         if rate is not None and self.enabled:
             self._rate = rate
             divisor = self._divisor_for(rate)
@@ -96,6 +103,11 @@ class SessionRate:
             )
         self._publish_state()
 
+    def _pad(self, now_s: float) -> None:
+        padding = self.controller.padding_bps(now_s) if self.enabled else 0.0
+        fps = self.encoder.config.fps / self.frame_divisor
+        self.encoder.pad_frames_to(int(padding / 8 / fps))
+
     def _divisor_for(self, rate: float) -> int:
         if self.encoder.config.fps < MIN_THINNED_FPS:
             return 1
@@ -115,6 +127,7 @@ class SessionRate:
         self._state["bitrate"] = self._rate
         self._state["fps_divisor"] = self.frame_divisor
         self._state["rate_reason"] = state.reason if self.enabled else "fixed"
+        self._state["probe_bps"] = round(state.probe_bps)
         if state.delivered_bps is not None:
             self._state["received_bps"] = round(state.delivered_bps)
         if state.queue_ms is not None:
