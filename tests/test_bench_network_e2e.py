@@ -36,6 +36,7 @@ def test_short_run_reports_every_figure(tmp_path: Path) -> None:
         assert case["frames_published"] > 0 and case["frames_shown"] > 0, case
         assert 0 < case["delivered_ratio"] <= 1.2
         assert {"count", "total_ms", "longest_ms"} <= set(case["freezes"])
+        assert 0 <= case["probes"]["proved"] <= case["probes"]["started"]
         assert case["glass_to_glass"]["count"] > 0
         assert case["median_ms"] is not None and case["p95_ms"] >= case["median_ms"]
         assert case["received_psnr_db"]["count"] + case["received_psnr_db"]["unknown"] > 0

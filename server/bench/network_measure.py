@@ -140,6 +140,8 @@ def measure(run: NetworkRun, browser: Any) -> dict[str, Any]:
             shown.start(page.evaluate(READ_DRAWS)["draws"])
             first = _stats(page)
             published0 = session.broadcast.stats.frames_published
+            probe = session.rate.controller.probe
+            probes0 = (probe.started, probe.succeeded)
             t0 = time.monotonic()
             t_end = t0 + run.seconds
             series = RateSeries(schedule, t0)
@@ -177,6 +179,8 @@ def measure(run: NetworkRun, browser: Any) -> dict[str, Any]:
                     _progress(name, t0, run.seconds, series, shown)
             elapsed = time.monotonic() - t0
             published = session.broadcast.stats.frames_published - published0
+            # Link probes (padded frames, server/session/link_probe.py) in the window.
+            probes = {"started": probe.started - probes0[0], "proved": probe.succeeded - probes0[1]}
             tail = page.evaluate(READ_DRAWS)
             shown.add(tail["draws"])
             shown.finish(tail["now"])
@@ -213,6 +217,7 @@ def measure(run: NetworkRun, browser: Any) -> dict[str, Any]:
         "received_psnr_db": quality.summary(),
         "page_counters": counter_deltas(first, end),
         "bitrate_means": series.means(),
+        "probes": probes,
         "series": series.as_dict(),
         "capacity_steps": [
             {"at_s": s.at_s, "capacity_bps": capacity_bps(schedule, i)}

@@ -19,6 +19,7 @@ COLUMNS = (
     ("capacity", 9),
     ("link", 6),
     ("lost/skip/late", 15),
+    ("probes", 7),
 )
 
 
@@ -37,6 +38,11 @@ def _page(counters: dict[str, Any]) -> str:
     if not any(k in counters for k in keys):
         return "-"
     return "/".join(_num(counters.get(k), 0) for k in keys)
+
+
+def _probes(probes: dict[str, int] | None) -> str:
+    """Link probes in the window: proved / started (``-``: a report without them)."""
+    return "-" if probes is None else f"{probes['proved']}/{probes['started']}"
 
 
 def row(case: dict[str, Any]) -> list[str]:
@@ -59,6 +65,7 @@ def row(case: dict[str, Any]) -> list[str]:
         capacity_text,
         _mbit(means["link_delivered_bps"]),
         _page(case["page_counters"]),
+        _probes(case.get("probes")),
     ]
 
 
