@@ -161,6 +161,12 @@ class LinkEstimate:
             reported_bps=reported,
         )
 
+    def least_delay_ms(self, sent_from_ms: float, sent_to_ms: float) -> float | None:
+        """The least one-way delay (with this viewer's clock offset) of the frames sent
+        in ``[sent_from_ms, sent_to_ms)`` on our clock, or None if none arrived."""
+        delays = [a.delay_ms for a in self._arrivals if sent_from_ms <= a.sent_ms < sent_to_ms]
+        return min(delays) if delays else None
+
     def _remember(self, pts: int) -> None:
         self._seen.add(pts)
         self._seen_order.append(pts)

@@ -18,8 +18,11 @@ every probe frame before the next one leaves, so the probe's frames all see the
 same delay; a narrower path queues the surplus and the delay grows frame after
 frame (at 0.85 times the target, by 18 ms from the first two of five frames to
 the last two at 30 fps). A probe is *proved* when every one of its frames
-arrived and the last two were delayed no more than ``SLACK_MS`` over the first
-two (carried()).
+arrived, the last two were delayed no more than ``SLACK_MS`` over the first two,
+and the first two no more than a frame interval plus ``SLACK_MS`` over the least
+delay of the frames sent in the ``BASE_S`` before the probe (carried()): on
+``lte`` a start held behind a lost packet (a retransmission, 60 ms) had hidden the
+growth after it and proved 4.7 Mbit/s of a 4 Mbit/s link.
 
 The delay trend, not the spread of the arrivals, decides: the spread can be
 squeezed by a frame held behind a lost packet or stamped late by a busy page,
@@ -47,6 +50,7 @@ AGAIN_S = 0.5  # after a success, the next probe may start this soon
 RETRY_S = 4.0  # after a failure
 RESULT_TIMEOUT_S = 2.0  # after the probe's end, a frame not reported counts as lost
 MIN_FRAMES = 5
+BASE_S = 2.0  # the path's delay before a probe: the least of the frames sent this long before
 MAX_PROBE_S = 0.5  # a stream too slow for MIN_FRAMES in this long is not probed further
 
 
@@ -67,6 +71,10 @@ class Probe:
     arrivals: dict[str, dict[int, float]] = field(default_factory=dict)  # viewer -> pts -> ms
     results: dict[str, bool] = field(default_factory=dict)  # viewer -> proved
 
+    def interval_ms(self) -> float:
+        sent = sorted(f.sent_ms for f in self.frames.values())
+        return (sent[-1] - sent[0]) / (len(sent) - 1) if len(sent) > 1 else 0.0
+
     def running(self, now_s: float) -> bool:
         """Padding goes on for ``PROBE_S``, longer at a low frame rate until it padded
         ``MIN_FRAMES`` frames, never past ``MAX_PROBE_S``."""
@@ -75,16 +83,20 @@ class Probe:
         return now_s < self.ends_s or len(self.frames) < MIN_FRAMES
 
 
-def carried(probe: Probe, arrivals: dict[int, float]) -> bool:
-    """Every frame of the probe arrived, and the last two were delayed no more than
-    ``SLACK_MS`` over the first two: a path slower than the probe queues a little
-    more of each frame. The lesser of each pair, so one frame stamped late by a busy
-    page does not fail a probe, and one held behind a lost packet (the first, with
-    the others after it) does not pass one: those after it still queue."""
-    if len(probe.frames) < MIN_FRAMES or any(pts not in arrivals for pts in probe.frames):
+def carried(probe: Probe, arrivals: dict[int, float], base_delay_ms: float | None) -> bool:
+    """Every frame of the probe arrived; the last two were delayed no more than
+    ``SLACK_MS`` over the first two (a path slower than the probe queues a little
+    more of each frame); and the first two no more than a frame interval plus
+    ``SLACK_MS`` over ``base_delay_ms``, the path's least delay before the probe (a
+    start held behind a lost packet hides the growth after it). The lesser of each
+    pair, so one frame stamped late by a busy page does not fail a probe."""
+    if base_delay_ms is None or len(probe.frames) < MIN_FRAMES:
+        return False
+    if any(pts not in arrivals for pts in probe.frames):
         return False
     delays = [arrivals[pts] - probe.frames[pts].sent_ms for pts in sorted(probe.frames)]
-    return min(delays[-2:]) - min(delays[:2]) <= SLACK_MS
+    start, end = min(delays[:2]), min(delays[-2:])
+    return end - start <= SLACK_MS and start - base_delay_ms <= probe.interval_ms() + SLACK_MS
 
 
 class LinkProbe:
@@ -127,9 +139,11 @@ class LinkProbe:
         self,
         source: str,
         frames: list[tuple[int, float]],
+        base_delay_ms: float | None,
         now_s: float,
     ) -> float | None:
-        """A viewer's arrivals; returns the rate the probe proved for it once that is
+        """A viewer's arrivals (``base_delay_ms``: its least delay before the probe,
+        see base_window_ms()); returns the rate the probe proved for it once that is
         known (None: not yet, or nothing)."""
         probe = self.current
         if probe is None or source not in probe.arrivals or source in probe.results:
@@ -141,10 +155,18 @@ class LinkProbe:
         complete = not probe.running(now_s) and len(seen) == len(probe.frames) > 0
         if not complete and now_s < probe.started_s + MAX_PROBE_S + RESULT_TIMEOUT_S:
             return None
-        proved = carried(probe, seen)
+        proved = carried(probe, seen, base_delay_ms)
         probe.results[source] = proved
         self._maybe_finish(now_s)
         return probe.target_bps if proved else None
+
+    def base_window_ms(self) -> tuple[float, float] | None:
+        """The send times (ms, our clock) of the frames whose least delay is the path's
+        before the running probe: the ``BASE_S`` before it."""
+        probe = self.current
+        if probe is None:
+            return None
+        return (probe.started_s - BASE_S) * 1000, probe.started_s * 1000
 
     def expire(self, now_s: float, players: list[str]) -> None:
         """Viewers that left or never answered count as a failed probe once it timed out."""

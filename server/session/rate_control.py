@@ -173,9 +173,12 @@ class RateController:
             viewer.first_report_s = now_s
         viewer.last_sample = viewer.estimate.report(fields, self.sent, now_s)
         self._react(viewer, viewer.last_sample, now_s)
-        proved = self.probe.report(source, fields.frames, now_s)
-        if proved is not None:
-            self._probed(viewer, proved, now_s)
+        window = self.probe.base_window_ms()
+        if window is not None:
+            base = viewer.estimate.least_delay_ms(*window)
+            proved = self.probe.report(source, fields.frames, base, now_s)
+            if proved is not None:
+                self._probed(viewer, proved, now_s)
 
     def forget(self, source: str) -> None:
         self._players.pop(source, None)
