@@ -119,7 +119,8 @@ def describe(probe: Probe, arrivals: dict[int, float], base_delay_ms: float | No
             delays.append(f"{arrivals[pts] - probe.frames[pts].sent_ms - base_delay_ms:+.0f}")
     sizes = sorted(f.size for f in probe.frames.values())
     size = f"{sizes[0] // 1000}-{sizes[-1] // 1000} kB" if sizes else "none"
-    return f"{len(probe.frames)} frames of {size}, delay over the path's before (ms): {' '.join(delays)}"
+    over = " ".join(delays)
+    return f"{len(probe.frames)} frames of {size}, delay over the path's before (ms): {over}"
 
 
 class LinkProbe:
