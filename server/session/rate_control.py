@@ -80,9 +80,11 @@ PROBE_AFTER_CUT_S = 1.5  # no probe this soon after a decrease
 PROBE_MEMORY_S = 10.0  # what a probe proved raises the cap this long
 PROBE_TRUST = 0.9  # the rate jumps to this fraction of what a probe proved
 MIN_PROBE_STEP = 1.1  # a probe aims at least this far over the link, or none starts
-# The queue a probe builds past a full link is the probe's answer, not congestion: no
-# delay-based decrease from a probe's start until this long after its end (losses
-# and skips still decrease).
+# The queue a probe builds past a full link is the probe's answer, not congestion: a
+# growing queue is no reason to decrease from a probe's start until this long after
+# its end. A high one (QUEUE_HIGH_MS, more than a probe builds), losses and skips
+# still are: a queue the stream had built before the probe (seen on drop's narrow
+# link, 370 ms) must not wait for the probe.
 PROBE_DRAIN_S = 1.0
 APP_LIMITED = 0.9  # what arrived is under this fraction of the rate: the picture is short
 
@@ -272,7 +274,7 @@ class RateController:
         growing = queue is not None and queue > QUEUE_OVERUSE_MS and sample.queue_rising and slower
         high = queue is not None and queue > QUEUE_HIGH_MS
         if now_s - self._probe_started_s < PROBE_S + PROBE_DRAIN_S:
-            growing = high = False
+            growing = False  # a high queue still counts: the probe alone builds less
         viewer.overuse_reports = viewer.overuse_reports + 1 if growing or high else 0
         congested = (
             viewer.overuse_reports >= OVERUSE_REPORTS
