@@ -24,13 +24,14 @@ is a visible stall every few seconds.
   (GCC's near-convergence mode: the link's limit is probably there), never
   above ``PROBE_HEADROOM`` times what the viewer received (an app-limited stream
   cannot prove more) nor the configured bitrate.
-- **Probe with padding** (link_probe.py): when that cap or the careful climb has
-  held the rate for ``PROBE_WAIT_S``, ``PROBE_AFTER_CUT_S`` after any decrease,
-  every frame is padded
-  for a fifth of a second so the path carries a known higher rate; what arrived
-  proves the link for ``PROBE_MEMORY_S`` (the cap rises to it) and the rate jumps
-  to ``PROBE_TRUST`` times it, past the careful climb near an old congestion
-  point that the link has now proved wider than (GCC's probe result).
+- **Probe with padding** (link_probe.py): when that cap, or the careful climb
+  while the picture fills less than ``APP_LIMITED`` of the rate, has held the rate
+  for ``PROBE_WAIT_S`` (and ``PROBE_AFTER_CUT_S`` after any decrease), every frame
+  is padded for a fifth of a second so the path carries a known higher rate; a
+  probe that came through raises the cap to its rate for ``PROBE_MEMORY_S`` and
+  the rate to ``PROBE_TRUST`` times it, past the careful climb near an old
+  congestion point the link has now proved wider than (GCC's probe result). The
+  padding rides in the video track, so spectators receive it too.
 - **Nothing arrives** (reports without a new frame for a second while we send):
   the safe rate below, then up from there once frames flow.
 - **No feedback**: a player that sends input but no feedback (an old page), or
