@@ -137,6 +137,48 @@ def test_the_page_thumbnail_is_the_snapshot_s(moving: Live, page: Any) -> None:
         page.wait_for_timeout(150)
 
 
+def test_frames_padded_for_a_link_probe_play_as_the_same_pictures(moving: Live, page: Any) -> None:
+    """While the session probes its player's link every frame carries H.264 filler
+    data (server/media/filler.py); Chromium's WebCodecs decoder must read past it:
+    the page keeps its frame rate, reports no error, and shows the frames the server
+    encoded. Here every frame is padded to 8 Mbit/s for 3 s (a probe pads 0.2 s)."""
+    session = moving.stack.session
+    assert session is not None
+    controller = session.rate.controller
+    sizes: list[tuple[int, int]] = []
+    frame_sent = controller.frame_sent
+
+    def spy(pts_us: int, size: int, now_s: float, padded_to: int = 0) -> None:
+        sizes.append((size, padded_to))
+        frame_sent(pts_us, size, now_s, padded_to)
+
+    controller.frame_sent = spy  # type: ignore[method-assign]
+    controller.padding_bps = lambda now_s: 8e6  # type: ignore[method-assign]
+    try:
+        page.wait_for_timeout(500)  # the next rate step tells the encoder
+        before = stats(page)
+        same: list[float] = []
+        for _ in range(6):
+            snap = _snapshot(page)
+            sent = moving.tap.get(snap["frameId"])
+            assert sent is not None, f"frame {snap['frameId']} not in the tap"
+            same.append(psnr(thumbnail(decode_data_url(snap["dataUrl"])), sent))
+            page.wait_for_timeout(400)
+        after = stats(page)
+    finally:
+        del controller.padding_bps, controller.frame_sent  # back to the class's methods
+    padded = [size for size, floor in sizes if floor > 0]
+    floor = int(8e6 / 8 / FPS)
+    print(f"padded {len(padded)} of {len(sizes)} frames to >= {floor} B; PSNR {same}")
+    assert len(padded) >= 0.8 * len(sizes) > 30
+    assert min(padded) >= floor
+    assert after["errors"] == [] and after["connected"]
+    shown_fps = (after["framesPresented"] - before["framesPresented"]) / 2.4
+    assert shown_fps >= 0.6 * FPS, shown_fps
+    assert min(same) >= MIN_PSNR_EACH_DB, same
+    assert statistics.median(same) >= MIN_PSNR_MEDIAN_DB, same
+
+
 @pytest.fixture
 def still(browser: Any) -> Iterator[tuple[Live, Any, list[int]]]:
     """The static scene (the camera never moves by itself) with a page, and the
