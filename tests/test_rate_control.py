@@ -329,3 +329,30 @@ def test_probes_bring_the_rate_back_when_the_scene_turns_complex_now_and_then() 
         )
         assert run.rate_at(step_up + 10) > 0.7 * CEILING, (step_up, run.between(step_up, 99))
         assert len([t for t in run.lost_at if 12 <= t < step_up]) <= 2, run.lost_at
+
+
+def test_a_viewer_that_fakes_its_probe_arrivals_gets_no_more_than_the_ceiling() -> None:
+    # Arrival stamps cannot be checked: a viewer may report every frame, probes
+    # included, at a flat delay whatever its link. Probes then prove their targets,
+    # and the rate climbs, but never past the configured bitrate, and the padding
+    # never asks for more than it either.
+    rc = RateController(CEILING, FLOOR)
+    rc.input_seen("liar", 0.0)
+    rc._players["liar"].rate = 1_000_000  # as after a decrease: the climb has work to do
+    pts = 0
+    peak_padding = 0.0
+    for i in range(30 * 20):
+        now = i / 30
+        padded_to = int(rc.padding_bps(now) / 30 / 8)
+        peak_padding = max(peak_padding, rc.padding_bps(now))
+        rc.frame_sent(pts, max(int(0.5 * rc.state.bitrate / 30 / 8), padded_to), now, padded_to)
+        if i % 8 == 7:
+            frames = [
+                (p, (p / 1e6 + 0.02) * 1000) for p in range(pts - 7 * 33_333, pts + 1, 33_333)
+            ]
+            rc.feedback("liar", FeedbackFields(player=True, frames=frames), now)
+        if i % 3 == 2:
+            rc.update(now)
+        pts += 33_333
+    assert rc.state.bitrate <= CEILING and peak_padding <= CEILING
+    assert rc.probe.succeeded >= 1  # its lies were believed, within the ceiling
