@@ -177,10 +177,22 @@ def test_skipped_group_counted_and_recovered_by_a_keyframe_request(
     session = stack.stack.session
     assert session is not None
     forced = session.encoder.forced_keyframes
-    before = stats(page)
-    t0 = time.monotonic()
-    page.evaluate("() => window.upcast.faults.dropGroup()")
-    after = _recovered(page, before, 5000)
+    first = stats(page)
+    for attempt in range(2):
+        before = stats(page)
+        t0 = time.monotonic()
+        page.evaluate("() => window.upcast.faults.dropGroup()")
+        after = _recovered(page, before, 5000)
+        # A decoder that fell behind at the same moment (its queue overflowed: the
+        # page starved of CPU, seen once in CI on 2 cores, 1.1 s with two IDRs) makes
+        # the recovery the page reports its own, not the fault's: drop a group again
+        # once frames flow. The fault's recovery is what this test times.
+        if after["recovery"]["reason"] != "behind" or attempt == 1:
+            break
+        print("skip: the decoder fell behind during the fault; once more")
+        page.wait_for_function(
+            "n => window.upcast.stats().framesPresented >= n + 10", arg=after["framesPresented"]
+        )
     presented = after["framesPresented"]
     page.wait_for_function("n => window.upcast.stats().framesPresented >= n + 10", arg=presented)
     end = stats(page)
@@ -189,8 +201,8 @@ def test_skipped_group_counted_and_recovered_by_a_keyframe_request(
         "recovery_ms": after["recovery"]["lastRecoveryMs"],
         "reason": after["recovery"]["reason"],
         "requests": after["recovery"]["keyframeRequests"] - before["recovery"]["keyframeRequests"],
-        "skipped": end["groupsSkipped"] - before["groupsSkipped"],
-        "lost": end["framesLost"] - before["framesLost"],
+        "skipped": end["groupsSkipped"] - first["groupsSkipped"],
+        "lost": end["framesLost"] - first["framesLost"],
         "forced_idr": session.encoder.forced_keyframes - forced,
         "longest_freeze_ms": end["longestFreezeMs"],
         "status": end["status"],
