@@ -117,6 +117,12 @@ class _Viewer:
     probed_until_s: float = 0.0
     held_since_s: float | None = None  # the climb is held (capped or careful), since
 
+    def proved(self, now_s: float) -> float:
+        """What the last probe proved while it still counts (``PROBE_MEMORY_S``), or 0."""
+        if self.probed_bps is None or now_s >= self.probed_until_s:
+            return 0.0
+        return self.probed_bps
+
 
 @dataclass(frozen=True)
 class RateState:
@@ -242,9 +248,9 @@ class RateController:
         # What arrived allows PROBE_HEADROOM over it (the encoder makes less than it is
         # told); what a probe proved is the link itself, a rate the picture may use
         # whole (a complex moment makes all of its target).
-        proven = PROBE_HEADROOM * sample.delivered_bps + 0.05 * self.ceiling
-        if viewer.probed_bps is not None and now_s < viewer.probed_until_s:
-            proven = max(proven, viewer.probed_bps)
+        proven = max(
+            PROBE_HEADROOM * sample.delivered_bps + 0.05 * self.ceiling, viewer.proved(now_s)
+        )
         target = min(self.ceiling, viewer.rate + step * min(dt, 1.0))
         # Held: by what the link has shown, or to the careful climb near where it last
         # gave out while the picture does not fill the rate (a stream that fills it
@@ -325,10 +331,7 @@ class RateController:
         a recent probe's proof where that is more."""
         sample = viewer.last_sample
         delivered = sample.delivered_bps if sample is not None else None
-        link = delivered or 0.0
-        if viewer.probed_bps is not None and now_s < viewer.probed_until_s:
-            link = max(link, viewer.probed_bps)
-        return link
+        return max(delivered or 0.0, viewer.proved(now_s))
 
     def _maybe_probe(self, now_s: float) -> None:
         """Start a probe when the player with the lowest rate has been held (by what
