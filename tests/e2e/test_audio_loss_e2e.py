@@ -11,11 +11,27 @@ skipped what could not arrive. Measured against the same page before the loss:
   where it was, as playback is tied to the output clock plus one offset.
 And packets the decoder cannot take (invalid Opus, a frame without a packet) do not end
 the sound: WebCodecs closes a decoder after an error, and the page makes a new one.
+
+The spectra count only where the page's playback offset held still. The player moves
+that offset when its target moves by 10 ms or more, as a faded jump (2.7 ms out, 2.7 ms
+in: client_web/src/audio.ts), which reads as a click in the one spectrum it falls in
+(11-15 dB, up to 2 FFT bins off the tone). With the CPU busy, such jumps come without
+any loss: one of 110-205 ms about 9 s after the start in most runs (the start-up's
+arrivals leaving the page's 3 s window), and on a machine with two busy loops beside
+the test 6-10 of about 10 ms in 16 s. Two full-suite runs of this test failed with that
+signature in the lossy half (one spectrum 2 bins off, two under 20 dB), as if
+concealment had clicked, and the big jump, between the two latency readings, moved
+one by 33 ms. So a spectrum read across a jump is left out (and counted); at least half
+must remain, and no jump over 20 ms should fall between 3 s before the first latency
+reading and the second, else the measurement is repeated once (on a machine with two
+busy loops beside the test, jumps of 90-210 ms came in both: there the drift allowed
+grows by the jumps over 20 ms).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import json
 import random
 from collections.abc import Iterator
@@ -35,9 +51,19 @@ pytestmark = [*needs("index.html"), pytest.mark.timeout(180)]
 TONE_HZ = 880.0
 
 READS = 16
-# Spectra 200 ms apart: the loudest bin's frequency, and the tone's power
-# against everything more than 20 bins (117 Hz) away from it, in dB.
+SAMPLE_RATE = 48_000  # the page's AudioContext (the offset is in its frames)
+# A jump of the playback offset beyond the drift check's tolerance: a latency reading
+# across one measures the jump, not drift.
+MAX_JUMP_MS = 20.0
+# Spectra 200 ms apart: the loudest bin's frequency, the tone's power against
+# everything more than 20 bins (117 Hz) away from it, in dB, and the page's playback
+# offset (frames) right after: a change of it is a jump of the sound (see above).
 SPECTRA = """async ([hz, count]) => {
+    const offsetNow = () => {
+        const sync = window.upcast.stats().audio.sync;
+        return sync ? sync.offsetFrames : null;
+    };
+    const start = offsetNow();
     const out = window.upcast.audioOutput();
     const analyser = out.context.createAnalyser();
     analyser.fftSize = 8192;
@@ -57,10 +83,10 @@ SPECTRA = """async ([hz, count]) => {
             else if (Math.abs(i - bin) > 20) rest += p;
         }
         const hz = best * out.context.sampleRate / analyser.fftSize;
-        reads.push([hz, 10 * Math.log10(tone / rest)]);
+        reads.push([hz, 10 * Math.log10(tone / rest), offsetNow()]);
     }
     out.disconnect(analyser);
-    return reads;
+    return {start, reads};
 }"""
 
 
@@ -105,6 +131,100 @@ def _latency_p50(page: Any) -> float:
     return float(stats(page)["latency"]["audio_total"]["p50"])
 
 
+@dataclasses.dataclass
+class Spectrum:
+    hz: float  # the loudest bin's frequency
+    db: float  # the tone's power against the broadband rest
+    steady: bool  # the playback offset did not move while it was read
+
+
+def _spectra(page: Any, offsets: list[int | None]) -> list[Spectrum]:
+    """READS spectra; the playback offset at each is appended to ``offsets``."""
+    found = page.evaluate(SPECTRA, [TONE_HZ, READS])
+    read_offsets = [found["start"]] + [read[2] for read in found["reads"]]
+    offsets += read_offsets
+    return [
+        Spectrum(hz=read[0], db=read[1], steady=read_offsets[k] == read_offsets[k + 1])
+        for k, read in enumerate(found["reads"])
+    ]
+
+
+def _offset(page: Any) -> int | None:
+    sync = stats(page)["audio"].get("sync") or {}
+    return sync.get("offsetFrames")
+
+
+def _wait_watching_offset(page: Any, seconds: float, offsets: list[int | None]) -> None:
+    """Wait, reading the playback offset every 200 ms into ``offsets``."""
+    for _ in range(round(seconds / 0.2)):
+        page.wait_for_timeout(200)
+        offsets.append(_offset(page))
+
+
+@dataclasses.dataclass
+class LossMeasurement:
+    clean: list[Spectrum]
+    lossy: list[Spectrum]
+    latency_before: float
+    latency_after: float
+    underrun_clean: int
+    underrun_lossy: int
+    concealed_lossy: int
+    dropped_lossy: int
+    # The playback offset from 6 s before the first latency reading to the second.
+    offsets: list[int | None]
+
+    def _jumps_ms(self) -> list[float]:
+        known = [o for o in self.offsets if o is not None]
+        return [abs(b - a) / SAMPLE_RATE * 1000 for a, b in itertools.pairwise(known)]
+
+    @property
+    def largest_jump_ms(self) -> float:
+        return max(self._jumps_ms(), default=0.0)
+
+    @property
+    def far_jumps_ms(self) -> float:
+        """The jumps over MAX_JUMP_MS, added up: what they may have moved the latency."""
+        return sum(j for j in self._jumps_ms() if j > MAX_JUMP_MS)
+
+    @property
+    def steady_lossy(self) -> list[Spectrum]:
+        return [s for s in self.lossy if s.steady]
+
+
+def _measure(page: Any, lossy: Lossy) -> LossMeasurement:
+    """Spectra and latency clean, then after 6 s of loss, with the loss on meanwhile."""
+    offsets: list[int | None] = []
+    # The latency window holds 6 s of packets: its first reading must not span a jump.
+    _wait_watching_offset(page, 3.0, offsets)
+    underrun_start = stats(page)["audio"]["underrunFrames"]
+    clean = _spectra(page, offsets)
+    latency_before = _latency_p50(page)
+    underrun_clean = stats(page)["audio"]["underrunFrames"] - underrun_start
+    lossy.on = True
+    try:
+        _wait_watching_offset(page, 6.0, offsets)  # any drift would accumulate
+        underrun_start = stats(page)["audio"]["underrunFrames"]
+        concealed_start = stats(page)["audio"]["concealedFrames"]
+        dropped_start = lossy.dropped
+        lossy_spectra = _spectra(page, offsets)
+        latency_after = _latency_p50(page)
+        audio = stats(page)["audio"]
+    finally:
+        lossy.on = False
+    return LossMeasurement(
+        clean=clean,
+        lossy=lossy_spectra,
+        latency_before=latency_before,
+        latency_after=latency_after,
+        underrun_clean=underrun_clean,
+        underrun_lossy=audio["underrunFrames"] - underrun_start,
+        concealed_lossy=audio["concealedFrames"] - concealed_start,
+        dropped_lossy=lossy.dropped - dropped_start,
+        offsets=offsets,
+    )
+
+
 def test_lost_packets_make_no_click_storm_and_no_drift(
     lossy_stack: tuple[LiveStack, Lossy], browser: Any
 ) -> None:
@@ -116,56 +236,56 @@ def test_lost_packets_make_no_click_storm_and_no_drift(
             "() => window.upcast.stats().audio.running && window.upcast.stats().audio.decoded > 50",
             timeout=20_000,
         )
-        # The latency window holds 6 s of packets: let the start-up leave it.
-        page.wait_for_timeout(6500)
-        underrun_start = stats(page)["audio"]["underrunFrames"]
-        clean = page.evaluate(SPECTRA, [TONE_HZ, READS])
-        latency_before = _latency_p50(page)
-        underrun_clean = stats(page)["audio"]["underrunFrames"] - underrun_start
-        lossy.on = True
-        page.wait_for_timeout(6000)  # loss for a while: any drift would accumulate
-        underrun_start = stats(page)["audio"]["underrunFrames"]
-        concealed_start = stats(page)["audio"]["concealedFrames"]
-        dropped_start = lossy.dropped
-        lossy_reads = page.evaluate(SPECTRA, [TONE_HZ, READS])
-        latency_after = _latency_p50(page)
-        underrun_lossy = stats(page)["audio"]["underrunFrames"] - underrun_start
-        concealed_lossy = stats(page)["audio"]["concealedFrames"] - concealed_start
-        dropped_lossy = lossy.dropped - dropped_start
-        lossy.on = False
+        page.wait_for_timeout(3500)  # the start-up's latencies leave the 6 s window
+        m = _measure(page, lossy)
+        if len(m.steady_lossy) < READS // 2 or m.largest_jump_ms > MAX_JUMP_MS:
+            print(
+                f"audio loss: {READS - len(m.steady_lossy)} spectra across a jump, the"
+                f" largest {m.largest_jump_ms:.0f} ms: measuring again"
+            )
+            m = _measure(page, lossy)
     finally:
         page.close()
-    ratio_clean = float(np.median([r for _, r in clean]))
-    ratio_lossy = float(np.median([r for _, r in lossy_reads]))
+    steady = m.steady_lossy
+    ratio_clean = float(np.median([s.db for s in m.clean if s.steady] or [s.db for s in m.clean]))
+    ratio_lossy = float(np.median([s.db for s in steady]))
     summary = {
         "dropped": lossy.dropped,
         "sent": lossy.sent,
         "tone_to_rest_db": {"clean": ratio_clean, "lossy": ratio_lossy},
-        "capture_to_heard_p50_ms": {"before": latency_before, "after": latency_after},
+        "capture_to_heard_p50_ms": {"before": m.latency_before, "after": m.latency_after},
         # While the spectra were read: output frames without their sample, of them
         # those concealed, and the frames the packets dropped meanwhile held (480 each).
-        "underrun_frames": {"clean": underrun_clean, "lossy": underrun_lossy},
-        "concealed_frames_lossy": concealed_lossy,
-        "dropped_frames_lossy": dropped_lossy * 480,
+        "underrun_frames": {"clean": m.underrun_clean, "lossy": m.underrun_lossy},
+        "concealed_frames_lossy": m.concealed_lossy,
+        "dropped_frames_lossy": m.dropped_lossy * 480,
+        "largest_jump_ms": m.largest_jump_ms,
+        "spectra_across_a_jump": {
+            "clean": sum(not s.steady for s in m.clean),
+            "lossy": sum(not s.steady for s in m.lossy),
+        },
     }
+    lossy_reads = [(round(s.hz, 1), round(s.db, 1), s.steady) for s in m.lossy]
     print("audio loss:", json.dumps(summary), json.dumps(lossy_reads))
+    assert len(steady) >= READS // 2, ("the sound jumped in most spectra, twice", summary)
     assert lossy.dropped > 50
-    # The tone is still the loudest in every spectrum.
-    assert all(abs(hz - TONE_HZ) < 12 for hz, _ in lossy_reads), lossy_reads
+    # The tone is still the loudest in every spectrum read without a jump.
+    assert all(abs(s.hz - TONE_HZ) < 12 for s in steady), lossy_reads
     # The gaps were concealed (a burst longer than the concealment's 60 ms and gaps
     # right after one end in silence, hence not all of them).
-    assert concealed_lossy > 0.7 * dropped_lossy * 480, summary
+    assert m.concealed_lossy > 0.7 * m.dropped_lossy * 480, summary
     # The tone stays well above the broadband rest, in nearly every spectrum. Gaps
     # played as silence (faded over 2.7 ms, the player before concealment): medians
     # 14.7-45.6 dB in 6 runs (1 in CI), single spectra with a gap near their middle
     # 11-17 in every run. Concealed: medians 39.2 and 42.5 in 2 runs (16 spectra), the
     # worst single spectrum 29.3; tests/test_audio_concealment.py measures the same
     # difference without a browser (32.1 -> 46.3 dB median, worst 10.3 -> 28.4).
-    ratios = [r for _, r in lossy_reads]
+    ratios = [s.db for s in steady]
     assert ratio_lossy > 28.0, summary
     assert sum(r > 20.0 for r in ratios) >= len(ratios) - 1, (summary, ratios)
-    # No drift: the same latency, within a jitter buffer's worth.
-    assert abs(latency_after - latency_before) < 20.0, summary
+    # No drift: the same latency, within a jitter buffer's worth (and what jumps of the
+    # playback offset over 20 ms moved it, if the second measurement had them too).
+    assert abs(m.latency_after - m.latency_before) < 20.0 + m.far_jumps_ms, summary
     live.check()
 
 
