@@ -77,13 +77,21 @@ def newest(tap: FrameTap) -> tuple[int, Any]:
     return items[-1]
 
 
-def wait_for(predicate: Any, timeout_s: float, what: str) -> float:
-    """Poll until ``predicate()``; returns the seconds it took."""
+def poll(predicate: Any, timeout_s: float) -> float | None:
+    """Poll until ``predicate()``; the seconds it took, or None after ``timeout_s``."""
     t0 = time.monotonic()
     while not predicate():
-        assert time.monotonic() - t0 < timeout_s, f"{what}: not within {timeout_s:.0f} s"
+        if time.monotonic() - t0 >= timeout_s:
+            return None
         time.sleep(0.03)
     return time.monotonic() - t0
+
+
+def wait_for(predicate: Any, timeout_s: float, what: str) -> float:
+    """Poll until ``predicate()``; returns the seconds it took."""
+    took = poll(predicate, timeout_s)
+    assert took is not None, f"{what}: not within {timeout_s:.0f} s"
+    return took
 
 
 STILL_LEVELS = 0.5  # mean thumbnail change (0-255) below which the picture is still
@@ -132,8 +140,24 @@ def test_supertux_plays_and_follows_the_keys(supertux: Live, browser: Any) -> No
         intro_db = same_frame_db(live, page)
 
         page.click("#screen")
-        page.keyboard.press("Enter")
-        reaction_s = wait_for(lambda: newest(live.tap)[1].mean() > 100, 10, "the level after Enter")
+
+        # One CI run never left the intro after Enter, with inputs reaching the game
+        # (its stats counted 4 applied); three runs beside two busy loops here did not
+        # repeat it. A game may miss a key as a person's would be missed:
+        # pressed while it still loads behind the same dark screen, or pressed and
+        # released within one of its frames (SuperTux reads key state once a frame;
+        # Playwright's bare press releases within a millisecond). So the key is held as
+        # a person holds it, and pressed again, as a person would, if nothing happens.
+        def in_level() -> bool:
+            return bool(newest(live.tap)[1].mean() > 100)
+
+        presses = 1
+        page.keyboard.press("Enter", delay=150)
+        reaction_s = poll(in_level, 5)
+        if reaction_s is None:
+            presses = 2
+            page.keyboard.press("Enter", delay=150)
+            reaction_s = wait_for(in_level, 10, "the level after Enter, pressed twice")
 
         # The ice below the floor line is a static tiling: it only moves when the
         # camera scrolls, which it does as Tux walks right.
@@ -166,8 +190,9 @@ def test_supertux_plays_and_follows_the_keys(supertux: Live, browser: Any) -> No
         photon = s["inputToPhoton"]
         print(
             f"SuperTux: intro {statistics.median(intro_db):.1f} dB, level "
-            f"{statistics.median(level_db):.1f} dB (same frame, median of 6); Enter -> level "
-            f"{reaction_s * 1000:.0f} ms on the server; still after {settle_s:.1f} s; floor "
+            f"{statistics.median(level_db):.1f} dB (same frame, median of 6); Enter "
+            f"(pressed {presses}x) -> level {reaction_s * 1000:.0f} ms on the server; "
+            f"still after {settle_s:.1f} s; floor "
             f"change idle {idle_change:.1f} "
             f"vs right arrow {walk_change:.1f}; input-to-photon p50 {photon['p50']} ms p95 "
             f"{photon['p95']} ms ({len(photon['samples'])} presses); level dB {level_db}"
