@@ -229,8 +229,13 @@ class NetworkEmulator:
         self._listeners = []
         for server in self._tcp_servers:
             server.close()
-        for task in list(self._tcp_tasks):
+        handlers = list(self._tcp_tasks)
+        for task in handlers:
             task.cancel()
+        # Awaited, not only cancelled: EmulatorThread closes the loop right after, and a
+        # handler still unwinding then was finished by the garbage collector, closing
+        # its writers on the closed loop ('Event loop is closed').
+        await asyncio.gather(*handlers, return_exceptions=True)
         for server in self._tcp_servers:
             await server.wait_closed()
         self._tcp_servers = []
