@@ -24,8 +24,10 @@ concealment had clicked, and the big jump, between the two latency readings, mov
 one by 33 ms. So a spectrum read across a jump is left out (and counted); at least half
 must remain, and no jump over 20 ms should fall between 3 s before the first latency
 reading and the second, else the measurement is repeated once (on a machine with two
-busy loops beside the test, jumps of 90-210 ms came in both: there the drift allowed
-grows by the jumps over 20 ms).
+busy loops beside the test, jumps of 90-210 ms came in both). Drift is what the latency
+moved beyond the offset's own move between the two readings' windows: in a CI run two
+11 ms retargets during the loss moved the latency 20.9 ms, which is the design (the
+target follows the arrivals), not drift.
 """
 
 from __future__ import annotations
@@ -173,6 +175,10 @@ class LossMeasurement:
     dropped_lossy: int
     # The playback offset from 6 s before the first latency reading to the second.
     offsets: list[int | None]
+    # How many of those readings came before the first latency reading, and how many
+    # in the 6 s before the second (each reading's window of packets).
+    before_count: int
+    after_count: int
 
     def _jumps_ms(self) -> list[float]:
         known = [o for o in self.offsets if o is not None]
@@ -183,9 +189,14 @@ class LossMeasurement:
         return max(self._jumps_ms(), default=0.0)
 
     @property
-    def far_jumps_ms(self) -> float:
-        """The jumps over MAX_JUMP_MS, added up: what they may have moved the latency."""
-        return sum(j for j in self._jumps_ms() if j > MAX_JUMP_MS)
+    def moved_ms(self) -> float:
+        """How far the offset moved between the two latency readings' windows (the
+        medians of its readings in each): what it moved the latency by, by design."""
+        before = [o for o in self.offsets[: self.before_count] if o is not None]
+        after = [o for o in self.offsets[-self.after_count :] if o is not None]
+        if not before or not after:
+            return 0.0
+        return float(np.median(after) - np.median(before)) / SAMPLE_RATE * 1000
 
     @property
     def steady_lossy(self) -> list[Spectrum]:
@@ -200,10 +211,12 @@ def _measure(page: Any, lossy: Lossy) -> LossMeasurement:
     underrun_start = stats(page)["audio"]["underrunFrames"]
     clean = _spectra(page, offsets)
     latency_before = _latency_p50(page)
+    before_count = len(offsets)
     underrun_clean = stats(page)["audio"]["underrunFrames"] - underrun_start
     lossy.on = True
     try:
         _wait_watching_offset(page, 6.0, offsets)  # any drift would accumulate
+        loss_start = len(offsets) - 15  # the last 3 s of it
         underrun_start = stats(page)["audio"]["underrunFrames"]
         concealed_start = stats(page)["audio"]["concealedFrames"]
         dropped_start = lossy.dropped
@@ -222,6 +235,8 @@ def _measure(page: Any, lossy: Lossy) -> LossMeasurement:
         concealed_lossy=audio["concealedFrames"] - concealed_start,
         dropped_lossy=lossy.dropped - dropped_start,
         offsets=offsets,
+        before_count=before_count,
+        after_count=len(offsets) - loss_start,
     )
 
 
@@ -260,6 +275,7 @@ def test_lost_packets_make_no_click_storm_and_no_drift(
         "concealed_frames_lossy": m.concealed_lossy,
         "dropped_frames_lossy": m.dropped_lossy * 480,
         "largest_jump_ms": m.largest_jump_ms,
+        "offset_moved_ms": m.moved_ms,
         "spectra_across_a_jump": {
             "clean": sum(not s.steady for s in m.clean),
             "lossy": sum(not s.steady for s in m.lossy),
@@ -283,9 +299,9 @@ def test_lost_packets_make_no_click_storm_and_no_drift(
     ratios = [s.db for s in steady]
     assert ratio_lossy > 28.0, summary
     assert sum(r > 20.0 for r in ratios) >= len(ratios) - 1, (summary, ratios)
-    # No drift: the same latency, within a jitter buffer's worth (and what jumps of the
-    # playback offset over 20 ms moved it, if the second measurement had them too).
-    assert abs(m.latency_after - m.latency_before) < 20.0 + m.far_jumps_ms, summary
+    # No drift: the same latency, within a jitter buffer's worth, beyond what the page's
+    # own moves of its playback offset account for.
+    assert abs(m.latency_after - m.latency_before - m.moved_ms) < 20.0, summary
     live.check()
 
 
