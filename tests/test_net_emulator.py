@@ -280,33 +280,54 @@ def test_tcp_passes_through_on_the_same_port() -> None:
     assert run(scenario()) == b"sha256:hello\n"
 
 
-def test_stopping_with_a_tcp_connection_open_logs_no_traceback() -> None:
+def test_stopping_with_tcp_connections_open_ends_them_quietly_and_completely() -> None:
     """A page keeps its certificate fetch's connection open; stopping the emulator then
     ends the pass-through quietly (a cancelled handler task made asyncio log
-    'Exception in callback ... CancelledError' at every benchmark profile's end)."""
+    'Exception in callback ... CancelledError' at every benchmark profile's end), and
+    completely: no handler is left running when stop() returns. EmulatorThread closes
+    its loop right after, and a handler stop() had only cancelled was then finished by
+    the garbage collector, its writers' close() raising on the closed loop ('Exception
+    ignored in: <coroutine object NetworkEmulator._pass_tcp>', RuntimeError: Event loop
+    is closed, in a CI run)."""
     errors: list[dict[str, Any]] = []
+
+    def pass_throughs() -> list[asyncio.Task[Any]]:
+        return [
+            task
+            for task in asyncio.all_tasks()
+            if getattr(task.get_coro(), "__name__", "") == "_pass_tcp"
+        ]
 
     async def hold(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         await reader.read()  # until the emulator closes its side
         writer.close()
 
-    async def scenario() -> None:
+    async def scenario() -> tuple[int, list[bool], list[bytes]]:
         asyncio.get_running_loop().set_exception_handler(lambda _, ctx: errors.append(ctx))
         server = await asyncio.start_server(hold, "127.0.0.1", 0)
         port = server.sockets[0].getsockname()[1]
         async with server:
             net = NetworkEmulator(upstream=("127.0.0.1", port), tcp_passthrough=True)
             await net.start()
-            reader, writer = await asyncio.open_connection("::1", net.port)
-            writer.write(b"hello\n")
-            await writer.drain()
-            await asyncio.sleep(0.2)  # the pass-through is open both ways
+            clients = [await asyncio.open_connection("::1", net.port) for _ in range(3)]
+            for _, writer in clients:
+                writer.write(b"hello\n")
+                await writer.drain()
+            await asyncio.sleep(0.2)  # every pass-through is open both ways
+            running = pass_throughs()
             await net.stop()
-            assert await asyncio.wait_for(reader.read(), 2.0) == b""  # closed for the page
-            writer.close()
-            await asyncio.sleep(0.1)  # the loop runs the handler's done-callbacks
+            done = [task.done() for task in running]
+            # Closed for the page.
+            ends = [await asyncio.wait_for(reader.read(), 2.0) for reader, _ in clients]
+            for _, writer in clients:
+                writer.close()
+            await asyncio.sleep(0.1)  # the loop runs the handlers' done-callbacks
+            return len(running), done, ends
 
-    run(scenario())
+    count, done, ends = run(scenario())
+    assert count == 3
+    assert all(done), done
+    assert ends == [b""] * 3
     assert errors == []
 
 
@@ -377,48 +398,3 @@ def test_a_viewer_watches_the_relay_through_the_emulator(tmp_path: Path) -> None
     # viewer's own reads wait for the same loop (a fresh-clone CI run measured 15.3).
     assert 14.0 <= statistics.median(extra) <= 28.0, extra
     assert stats["clients"] == 1 and stats["down"]["lost"] == 0
-
-
-def test_stop_returns_with_every_tcp_pass_through_finished() -> None:
-    """EmulatorThread closes its loop right after stop(): a pass-through handler that
-    stop() had only cancelled was then finished by the garbage collector, and its
-    writers' close() on the closed loop raised ('Exception ignored in: <coroutine object
-    NetworkEmulator._pass_tcp>', RuntimeError: Event loop is closed, in a CI run). So
-    when stop() returns, no handler may be left running."""
-
-    def pass_throughs() -> list[asyncio.Task[Any]]:
-        return [
-            task
-            for task in asyncio.all_tasks()
-            if getattr(task.get_coro(), "__name__", "") == "_pass_tcp"
-        ]
-
-    async def hold(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        await reader.read()
-        writer.close()
-
-    errors: list[dict[str, Any]] = []
-
-    async def scenario() -> tuple[int, list[bool]]:
-        asyncio.get_running_loop().set_exception_handler(lambda _, ctx: errors.append(ctx))
-        server = await asyncio.start_server(hold, "127.0.0.1", 0)
-        port = server.sockets[0].getsockname()[1]
-        async with server:
-            net = NetworkEmulator(upstream=("127.0.0.1", port), tcp_passthrough=True)
-            await net.start()
-            clients = [await asyncio.open_connection("::1", net.port) for _ in range(3)]
-            for _, writer in clients:
-                writer.write(b"hello\n")
-                await writer.drain()
-            await asyncio.sleep(0.2)  # every pass-through is open both ways
-            running = pass_throughs()
-            await net.stop()
-            done = [task.done() for task in running]
-            for _, writer in clients:
-                writer.close()
-            return len(running), done
-
-    count, done = run(scenario())
-    assert count == 3
-    assert all(done), done
-    assert errors == []
