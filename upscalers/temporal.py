@@ -23,9 +23,11 @@ Per frame:
    centre; history fetched at p + motion (bilinear with a Catmull-Rom correction
    of every plane, so repeated resampling under motion does not blur it); history
    and current reconstruction both clamped to the YCoCg box of the samples as
-   rendered and blended with ``alpha = w / (trust * W + w)`` where W is the
-   accumulated weight (capped, so alpha never drops below about 1 / W_max; the
-   cap is far lower on moving pixels, whose history every resampling blurs).
+   rendered (widened by ``history_clamp_slack`` of its extent: back-projected detail
+   lies beyond the box-averaged samples' range) and blended with
+   ``alpha = w / (trust * W + w)`` where W is the accumulated weight (capped, so
+   alpha never drops below about 1 / W_max; the cap is far lower on moving pixels,
+   whose history every resampling blurs).
    After a reset the history starts as FSR 1's EASU of the frame's own samples,
    its taps at their jittered positions, worth ``reset_weight`` in that frame's
    blend and ``reset_carry`` after it: the frames after a cut are about as good as
@@ -199,8 +201,8 @@ class TemporalUpscaler(Upscaler):
             inputs = self._blocked_inputs(ycocg, lo, hi, prev_weight, mv, jit, scale)
         else:
             inputs = self._generic_inputs(ycocg, lo, hi, prev_weight, mv, jit, display)
-        # The sharpened reconstruction stays inside the samples' own range: sharpening
-        # detail, never ringing at an edge (a 64|191 step must not come out 40..215).
+        # The sharpened reconstruction stays inside the samples' (widened) range; the
+        # output's exact clamp keeps a 64|191 step from coming out 40..215.
         inputs.cur.clamp_(inputs.lo, inputs.hi)
         layout = inputs.cur.shape[1:]
         if self._base_grid is None:
@@ -346,10 +348,10 @@ class TemporalUpscaler(Upscaler):
         dt = self.dtype
         h, w = frame.depth.shape[:2]
         ycocg = ops.rgb8_to_ycocg(ops.as_tensor(frame.color, dev), dt)
-        # The box of the samples as rendered, before the presharpening: it bounds the
-        # history and the sharpened current frame alike.
+        # The box of the samples as rendered, before the presharpening, widened by
+        # history_clamp_slack: it bounds the history and the sharpened current frame alike.
         raw = ycocg
-        lo, hi = ops.box_3x3(raw)
+        lo, hi = ops.widen_box(*ops.box_3x3(raw), p.history_clamp_slack)
         if p.presharpen > 0.0:
             ycocg = ops.sharpen(raw, p.presharpen)
         depth = ops.as_tensor(frame.depth, dev).to(dt)

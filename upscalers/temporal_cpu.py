@@ -344,8 +344,8 @@ class HostTemporal:
         )  # fmt: skip
         self._prev_jitter = jit
         kernels.render_finish(
-            b.raw, b.lin, b.prev_weight, mean_weight, np.float32(p.max_weight), b.lo, b.hi,
-            self._prev_far, self._weight,
+            b.raw, b.lin, b.prev_weight, mean_weight, np.float32(p.max_weight),
+            np.float32(p.history_clamp_slack), b.lo, b.hi, self._prev_far, self._weight,
         )  # fmt: skip
         return moving
 

@@ -352,8 +352,11 @@ def render_reproject(
 
 
 @njit(parallel=True, **_JIT)
-def render_finish(ycc, lin, prev_weight, mean_weight, max_weight, lo, hi, prev_far, weight):
-    """The 3x3 YCoCg box (``ops.box_3x3``) of the padded ``ycc``, and the state for the
+def render_finish(
+    ycc, lin, prev_weight, mean_weight, max_weight, slack, lo, hi, prev_far, weight,
+):  # fmt: skip
+    """The 3x3 YCoCg box (``ops.box_3x3``) of the padded ``ycc``, widened by ``slack``
+    times its extent on each side (``ops.widen_box``), and the state for the
     next frame: the 2x2 max of linear depth (``ops.max_2x2``) and the accumulated weight
     (``TemporalUpscaler._store_weight``), written over the last frame's."""
     h, w = prev_weight.shape
@@ -369,8 +372,9 @@ def render_finish(ycc, lin, prev_weight, mean_weight, max_weight, lo, hi, prev_f
                     d0, d1, d2 = down[x], down[x + 1], down[x + 2]
                     mn = min(min(_min3(u0, u1, u2), _min3(m0, m1, m2)), _min3(d0, d1, d2))
                     mx = max(max(_max3(u0, u1, u2), _max3(m0, m1, m2)), _max3(d0, d1, d2))
-                    lo_row[x] = mn
-                    hi_row[x] = mx
+                    d = (mx - mn) * slack
+                    lo_row[x] = mn - d
+                    hi_row[x] = mx + d
             lin_y, lin_d = lin[y, 1:], lin[yd, 1:]
             far_row, pw_row, weight_row = prev_far[y], prev_weight[y], weight[y]
             for x in range(w):

@@ -63,6 +63,17 @@ def box_3x3(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return lo, hi
 
 
+def widen_box(
+    lo: torch.Tensor, hi: torch.Tensor, slack: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The box [lo, hi] widened by ``slack`` times its extent on each side (in place);
+    the numba path's ``render_finish`` computes the same in the same order."""
+    if slack == 0.0:
+        return lo, hi
+    d = (hi - lo).mul_(slack)
+    return lo.sub_(d), hi.add_(d)
+
+
 def closest_3x3(depth: torch.Tensor, carry: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Per pixel, the smallest depth of the 3x3 neighbourhood of the (H, W) depth and the
     ``carry`` (C, H, W) values that go with it (separable: row then column), with
