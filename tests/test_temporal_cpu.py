@@ -234,3 +234,25 @@ def test_moving_pixels_take_the_moving_step_on_both_backends() -> None:
     diff = (outs[0] - outs[1]).abs()
     assert int(diff[..., :q].max()) > 0  # moving: another step
     assert int(diff[..., 3 * q :].max()) == 0  # still: the same step, the same pixels
+
+
+def test_the_moving_step_shrinks_above_2x_on_both_backends() -> None:
+    """Above ``moving_step_scale`` the moving step is scaled by it over the scale (the
+    game's point samples alias more at 3x): both backends take that step there, and agree."""
+    p = TemporalParams()
+    assert p.moving_back_projection is not None
+    assert p.moving_step(1.5) == p.moving_step(2.0) == p.moving_back_projection
+    assert p.moving_step(3.0) == pytest.approx(p.moving_back_projection * 2.0 / 3.0)
+    display = Size(RENDER.width * 3, RENDER.height * 3)
+    frames = _half_moving_sequence()
+    _run_both(frames, display)
+    explicit = TemporalParams(moving_back_projection=p.moving_step(3.0), moving_step_scale=4.0)
+    for backend in ("torch", "numba"):
+        outs = []
+        for params in (p, explicit, TemporalParams(moving_step_scale=4.0)):
+            up = TemporalUpscaler(device="cpu", backend=backend, params=params)  # type: ignore[arg-type]
+            for f in frames:
+                out = up.upscale(f, display)
+            outs.append(out.int())
+        assert torch.equal(outs[0], outs[1]), backend  # the scaled step, exactly
+        assert not torch.equal(outs[0], outs[2]), backend  # not the unscaled one

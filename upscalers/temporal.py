@@ -253,12 +253,12 @@ class TemporalUpscaler(Upscaler):
 
     def _step_map(self, still: float, mv: torch.Tensor, display: Size) -> float | torch.Tensor:
         """Back-projection's step: ``still`` everywhere, or an (H, W) map with
-        ``TemporalParams.moving_back_projection`` on display pixels whose render pixel
-        (nearest) has non-zero dilated motion ``mv`` (2, h, w)."""
-        moving_step = self.params.moving_back_projection
+        ``TemporalParams.moving_step`` on display pixels whose render pixel (nearest) has
+        non-zero dilated motion ``mv`` (2, h, w)."""
+        _, h, w = mv.shape
+        moving_step = self.params.moving_step(max(display.width / w, display.height / h))
         if moving_step is None or moving_step == still or not bool(mv.any()):
             return still
-        _, h, w = mv.shape
         moving = (mv[0] != 0.0) | (mv[1] != 0.0)
         steps = torch.where(moving, moving_step, still).to(torch.float32)
         iy = ops.nearest_index(display.height, h, mv.device)

@@ -259,11 +259,15 @@ class HostTemporal:
         ``moving_back_projection`` where the dilated motion is not zero."""
         steps = self._steps
         steps.fill(still)
-        moving_step = self.params.moving_back_projection
+        moving_step = self.params.moving_step(self._axis_scale())
         if moving_step is not None and any_moving:
             d = self._buf.dilated
             steps[(d[0] != 0.0) | (d[1] != 0.0)] = moving_step
         return steps
+
+    def _axis_scale(self) -> float:
+        """Display over render pixels on the larger axis."""
+        return max(self.display[0] / self.render[0], self.display[1] / self.render[1])
 
     def _back_project(
         self,

@@ -92,6 +92,23 @@ class TemporalParams:
     # (fence bars that alias, drifting: the box model's worst case); still scenes
     # unchanged.
     moving_back_projection: float | None = 0.5
+    # Above this scale (display over render pixels, the larger axis) the moving step is
+    # moving_back_projection times moving_step_scale / scale. The game's renders are
+    # point samples, not the boxes back-projection assumes, and at 3x they are a third
+    # as dense per axis: a step of 0.5 there followed their aliasing, thin_detail -0.69
+    # dB and slow_pan -0.19 against 0.3, and thin_detail fell 0.5 dB below
+    # docs/reports/eval_upscalers.json (issue 19 allows 0.2). 2.0 keeps 1.5x and 2x as
+    # they were, where 0.5 was chosen; at 3x the step is 0.33. It costs box-filtered
+    # photographs at 3x (training photographs, against 0.5: pans -0.30 dB, zooms -0.25).
+    moving_step_scale: float = 2.0
+
+    def moving_step(self, scale: float) -> float | None:
+        """Back-projection's step on moving pixels at this upscaling factor."""
+        step = self.moving_back_projection
+        if step is None or scale <= self.moving_step_scale:
+            return step
+        return step * self.moving_step_scale / scale
+
     # RCAS of the output, in stops (0 strongest; None: off), as FSR 2 sharpens after
     # accumulation: the history stays unsharpened, and RCAS never leaves the range of a
     # pixel's 4 neighbours, so no halo. Off since back-projection, which sharpens from
