@@ -256,7 +256,7 @@ class TemporalUpscaler(Upscaler):
         ``TemporalParams.moving_step`` on display pixels whose render pixel (nearest) has
         non-zero dilated motion ``mv`` (2, h, w)."""
         _, h, w = mv.shape
-        moving_step = self.params.moving_step(max(display.width / w, display.height / h))
+        moving_step = self.params.moving_step(ops.axis_scale(Size(w, h), display))
         if moving_step is None or moving_step == still or not bool(mv.any()):
             return still
         moving = (mv[0] != 0.0) | (mv[1] != 0.0)

@@ -139,6 +139,8 @@ class HostTemporal:
         self.render = render
         self.display = display
         self.scale = scale
+        # Back-projection's step on moving pixels: fixed by the geometry.
+        self._moving_step = params.moving_step(ops.axis_scale(render, display))
         w, h = render
         big_w, big_h = display
         self._buf = _RenderBuffers.allocate(w, h)
@@ -256,18 +258,14 @@ class HostTemporal:
 
     def _step_map(self, still: float, any_moving: bool) -> npt.NDArray[np.float32]:
         """Back-projection's step per render pixel (``TemporalUpscaler._step_map``):
-        ``moving_back_projection`` where the dilated motion is not zero."""
+        ``TemporalParams.moving_step`` where the dilated motion is not zero."""
         steps = self._steps
         steps.fill(still)
-        moving_step = self.params.moving_step(self._axis_scale())
+        moving_step = self._moving_step
         if moving_step is not None and any_moving:
             d = self._buf.dilated
             steps[(d[0] != 0.0) | (d[1] != 0.0)] = moving_step
         return steps
-
-    def _axis_scale(self) -> float:
-        """Display over render pixels on the larger axis."""
-        return max(self.display[0] / self.render[0], self.display[1] / self.render[1])
 
     def _back_project(
         self,

@@ -63,6 +63,11 @@ def box_3x3(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return lo, hi
 
 
+def axis_scale(render: Size, display: Size) -> float:
+    """Display over render pixels on the larger axis: the upscaling factor."""
+    return max(display.width / render.width, display.height / render.height)
+
+
 def widen_box(
     lo: torch.Tensor, hi: torch.Tensor, slack: float
 ) -> tuple[torch.Tensor, torch.Tensor]:

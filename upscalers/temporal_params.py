@@ -102,13 +102,6 @@ class TemporalParams:
     # photographs at 3x (training photographs, against 0.5: pans -0.30 dB, zooms -0.25).
     moving_step_scale: float = 2.0
 
-    def moving_step(self, scale: float) -> float | None:
-        """Back-projection's step on moving pixels at this upscaling factor."""
-        step = self.moving_back_projection
-        if step is None or scale <= self.moving_step_scale:
-            return step
-        return step * self.moving_step_scale / scale
-
     # RCAS of the output, in stops (0 strongest; None: off), as FSR 2 sharpens after
     # accumulation: the history stays unsharpened, and RCAS never leaves the range of a
     # pixel's 4 neighbours, so no halo. Off since back-projection, which sharpens from
@@ -117,3 +110,10 @@ class TemporalParams:
     # +0.6 dB on the game's scenes.)
     # Not on a reset frame, mostly EASU's start and sharp already.
     output_sharpness: float | None = None
+
+    def moving_step(self, scale: float) -> float | None:
+        """Back-projection's step on moving pixels at this upscaling factor."""
+        step = self.moving_back_projection
+        if step is None or scale <= self.moving_step_scale:
+            return step
+        return step * self.moving_step_scale / scale
