@@ -156,11 +156,50 @@ def real_content_table(section: dict[str, Any], checks: list[tuple[str, bool]]) 
                 f"| {m} | {v['median_ms']:.2f} ({v['p95_ms']:.2f}) | " + " | ".join(cells) + " |"
             )
         out.append("")
+        reference = section.get("multiframe_ls", {}).get("scales", {}).get(scale)
+        if reference:
+            out.extend(multiframe_ls_table(methods, reference))
     if checks:
         out.append("Checks (real content):")
         out.append("")
         out.extend(f"- {'PASS' if ok else 'FAIL'}: {text}" for text, ok in checks)
     return "\n".join(out)
+
+
+def multiframe_ls_table(methods: dict[str, Any], reference: dict[str, Any]) -> list[str]:
+    """Per photograph and covered kind: dB over the best spatial method of temporal
+    (mean of its measured frames) and of the least-squares reference, raw and within
+    the output clamp (mean of the reference's frames)."""
+    spatial = [m for m, v in methods.items() if not v["temporal"]]
+    kinds = list(reference)
+    out = [
+        "Multi-frame least squares (`--multiframe-ls`: offline, every frame's samples so far; "
+        "clamped: within temporal's output clamp), dB over the best spatial method:",
+        "",
+        "| photograph | "
+        + " | ".join(f"{k}: temporal / least squares / clamped" for k in kinds)
+        + " |",
+        "|" + "---|" * (len(kinds) + 1),
+    ]
+    for image in reference[kinds[0]]["psnr_by_image"]:
+        cells = []
+        for kind in kinds:
+            best = max(
+                (methods[m]["kinds"][kind]["psnr_by_image"][image] for m in spatial),
+                default=None,
+            )
+            if best is None:
+                cells.append("-")
+                continue
+            temporal = methods.get("temporal", {}).get("kinds", {}).get(kind, {})
+            ours = temporal.get("psnr_by_image", {}).get(image)
+            shown = f"{ours - best:+.2f}" if ours is not None else "-"
+            raw = reference[kind]["psnr_by_image"][image] - best
+            clamped = reference[kind]["psnr_clamped_by_image"][image] - best
+            cells.append(f"{shown} / {raw:+.2f} / {clamped:+.2f}")
+        out.append(f"| {image} | " + " | ".join(cells) + " |")
+    out.append("")
+    return out
 
 
 def cut_plot(section: dict[str, Any], path: Path) -> None:

@@ -126,6 +126,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--real-measure-from", type=int, default=8, help="first measured frame of pan/zoom/still"
     )
+    parser.add_argument(
+        "--multiframe-ls",
+        action="store_true",
+        help="with --real-content: also an offline least-squares reconstruction from every "
+        "frame's samples so far on the still camera and the pan, with and without temporal's "
+        "output clamp (server/eval/multiframe_ls.py), about 11 s per photograph at 480x270 and 2x",
+    )
 
 
 @dataclass
@@ -168,6 +175,8 @@ def _parse(
     if args.frames <= WARMUP_CALLS:
         raise SystemExit(f"--frames must be above {WARMUP_CALLS} (the untimed warm-up calls)")
     display = Size.parse(args.display_size)
+    if args.multiframe_ls and args.real_content is None:
+        raise SystemExit("--multiframe-ls needs --real-content (it reconstructs the photographs)")
     images = _real_images(args) if args.real_content is not None else []
     try:
         parse_mip_bias(args.mip_bias, display, display)  # a bad value fails before rendering
@@ -400,6 +409,12 @@ def _real_content(
         args.real_measure_from,
     )
     report.cases.extend(cases)
+    if args.multiframe_ls:
+        from server.eval.multiframe_ls import reference_section
+
+        section["multiframe_ls"] = reference_section(
+            images, display, scales, args.real_frames, args.real_measure_from
+        )
     report.sections["real_content"] = section
     report.config["real_content"] = str(args.real_content)
     checks = real_content_checks(section)
