@@ -31,6 +31,7 @@ import numpy as np
 
 from server.bench.app_presets import PRESETS, PresetError
 from server.bench.latency import LiveStack, StageCollector, percentiles
+from server.bench.page_stats import read_latency, read_stats
 from server.bench.report import BenchReport
 from server.bench.snapshots import FrameThumbs, snapshot_psnr
 from server.ops.browser_paths import CHROMIUM, CHROMIUM_ARGS, WEB_ROOT
@@ -91,10 +92,10 @@ def _measure(args: argparse.Namespace, name: str, browser: Any, home: Path) -> d
                 _tap(page, key)
             while time.monotonic() < warm_end:
                 page.wait_for_timeout(500)
-                collector.update(page.evaluate("() => window.upcast.stats().latency"), keep=False)
+                collector.update(read_latency(page), keep=False)
             session = live.session
             assert session is not None
-            start = page.evaluate("() => window.upcast.stats()")
+            start = read_stats(page)
             published0 = session.broadcast.stats.frames_published
             t0 = time.monotonic()
             taps = 0
@@ -102,10 +103,10 @@ def _measure(args: argparse.Namespace, name: str, browser: Any, home: Path) -> d
                 _tap(page, preset.play_keys[taps % len(preset.play_keys)])
                 taps += 1
                 page.wait_for_timeout(int(TAP_EVERY_S * 1000) - TAP_HOLD_MS)
-                collector.update(page.evaluate("() => window.upcast.stats().latency"))
+                collector.update(read_latency(page))
                 live.check()
             elapsed = time.monotonic() - t0
-            end = page.evaluate("() => window.upcast.stats()")
+            end = read_stats(page)
             published = session.broadcast.stats.frames_published - published0
             psnr = snapshot_psnr(page, thumbs, count=10)
             if args.screenshots is not None:

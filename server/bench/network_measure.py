@@ -34,6 +34,7 @@ from server.bench.network_page import (
 )
 from server.bench.network_series import SAMPLE_EVERY_S, RateSeries, capacity_bps
 from server.bench.network_viewers import SpectatorViewers, viewers_summary
+from server.bench.page_stats import read_stats
 from server.bench.snapshots import FrameThumbs
 from server.loadtest.plan import RunPlan
 from server.loadtest.viewer import ViewerConfig
@@ -67,10 +68,6 @@ def _stream_state(live: LiveStack, key: str) -> int | None:
     state = getattr(live.session, "stream_state", None)
     value = state.get(key) if isinstance(state, dict) else None
     return int(value) if isinstance(value, int | float) else None
-
-
-def _stats(page: Any) -> dict[str, Any]:
-    return page.evaluate("() => window.upcast.stats()")  # type: ignore[no-any-return]
 
 
 def _bytes(stats: dict[str, Any]) -> int | None:
@@ -134,11 +131,11 @@ def measure(run: NetworkRun, browser: Any) -> dict[str, Any]:
             collector = StageCollector.empty()
             while (left := t0 - time.monotonic()) > 0:
                 page.wait_for_timeout(int(min(SAMPLE_EVERY_S, left) * 1000) + 1)
-                collector.update(_stats(page)["latency"], keep=False)
+                collector.update(read_stats(page)["latency"], keep=False)
             net.restart_schedule()
             shown = ShownFrames()
             shown.start(page.evaluate(READ_DRAWS)["draws"])
-            first = _stats(page)
+            first = read_stats(page)
             published0 = session.broadcast.stats.frames_published
             probe = session.rate.controller.probe
             probes0 = (probe.started, probe.succeeded)
@@ -168,7 +165,7 @@ def measure(run: NetworkRun, browser: Any) -> dict[str, Any]:
                     break
                 next_sample = min(max(next_sample + SAMPLE_EVERY_S, now), t_end)
                 live.check()
-                last = _stats(page)
+                last = read_stats(page)
                 collector.update(last["latency"])
                 shown.add(page.evaluate(READ_DRAWS)["draws"])
                 if now >= next_snapshot:
@@ -184,7 +181,7 @@ def measure(run: NetworkRun, browser: Any) -> dict[str, Any]:
             tail = page.evaluate(READ_DRAWS)
             shown.add(tail["draws"])
             shown.finish(tail["now"])
-            end = _stats(page)
+            end = read_stats(page)
             link_end = net.stats()
         finally:
             context.close()
