@@ -34,6 +34,7 @@ from aioquic.quic.events import (
 
 from . import codes
 from .guard import H3_EXCESSIVE_LOAD, ConnectionGuard, GuardLog, Violation
+from .probe_backoff import cap_probe_backoff
 from .session import Address, WtSession
 
 log = logging.getLogger(__name__)
@@ -164,6 +165,8 @@ class WtConnection(QuicConnectionProtocol):
 
     def __init__(self, quic: QuicConnection, stream_handler: Any = None) -> None:
         super().__init__(quic, stream_handler)
+        # Live media: after an outage the next probe is at most 0.5 s away (probe_backoff.py).
+        cap_probe_backoff(quic)
         self._h3: _WtH3Connection | None = None
         self.sessions: dict[int, WtSession] = {}
         self._stream_owner: dict[int, WtSession] = {}
