@@ -25,7 +25,8 @@ class _Page:
 
 
 def test_stats_travel_as_one_json_string() -> None:
-    stats = {"framesPresented": 3, "latency": {"total": {"p50": 40.5, "n": 2, "samples": [40.5, 41]}}}
+    total = {"p50": 40.5, "n": 2, "samples": [40.5, 41]}
+    stats = {"framesPresented": 3, "latency": {"total": total}}
     page = _Page(json.dumps(stats))
     assert read_stats(page) == stats
     assert read_latency(_Page(json.dumps(stats["latency"]))) == stats["latency"]
@@ -68,7 +69,7 @@ def test_a_collector_keeps_each_sample_once_across_overlapping_reads() -> None:
     for i in range(100):
         value = 30.0 + (i * 7919 % 97) / 8.0
         pushed.append(value)
-        window = (window + [value])[-20:]
+        window = [*window, value][-20:]
         if i % 7 == 6:
             collector.update({"total": {"samples": list(window)}})
     collector.update({"total": {"samples": list(window)}})
