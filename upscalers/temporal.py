@@ -301,11 +301,7 @@ class TemporalUpscaler(Upscaler):
             sharp = self._rcas(padded)
             out = sharp.mul_(255.0).add_(0.5).floor_().clamp_(0.0, 255.0)
         color = ops.as_tensor(frame.color, dev).permute(2, 0, 1).to(torch.float32)
-        lo, hi = ops.box_3x3(color)
-        h, w = color.shape[1:]
-        iy, ix = ops.nearest_index(big_h, h, dev), ops.nearest_index(big_w, w, dev)
-        lo = lo.index_select(1, iy).index_select(2, ix)
-        hi = hi.index_select(1, iy).index_select(2, ix)
+        lo, hi = ops.render_range_at_display(color, big_h, big_w)
         return torch.minimum(torch.maximum(out, lo), hi).to(torch.uint8)
 
     def _host_for(self, render: Size, display: Size, dev: torch.device) -> HostTemporal | None:

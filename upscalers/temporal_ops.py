@@ -63,6 +63,20 @@ def box_3x3(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return lo, hi
 
 
+def render_range_at_display(
+    color: torch.Tensor, big_h: int, big_w: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The output clamp's bounds: per display pixel, the min and max of the 3x3
+    neighbourhood of its render pixel (nearest) in ``color`` (C, h, w)."""
+    lo, hi = box_3x3(color)
+    iy = nearest_index(big_h, color.shape[1], color.device)
+    ix = nearest_index(big_w, color.shape[2], color.device)
+    return (
+        lo.index_select(1, iy).index_select(2, ix),
+        hi.index_select(1, iy).index_select(2, ix),
+    )
+
+
 def axis_scale(render: Size, display: Size) -> float:
     """Display over render pixels on the larger axis: the upscaling factor."""
     return max(display.width / render.width, display.height / render.height)

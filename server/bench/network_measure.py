@@ -34,7 +34,7 @@ from server.bench.network_page import (
 )
 from server.bench.network_series import SAMPLE_EVERY_S, RateSeries, capacity_bps
 from server.bench.network_viewers import SpectatorViewers, viewers_summary
-from server.bench.page_stats import read_stats
+from server.bench.page_stats import read_latency, read_stats
 from server.bench.snapshots import FrameThumbs
 from server.loadtest.plan import RunPlan
 from server.loadtest.viewer import ViewerConfig
@@ -135,7 +135,7 @@ def measure(run: NetworkRun, browser: Any) -> dict[str, Any]:
             collector = StageCollector.empty()
             while (left := t0 - time.monotonic()) > 0:
                 page.wait_for_timeout(int(min(SAMPLE_EVERY_S, left) * 1000) + 1)
-                collector.update(read_stats(page)["latency"], keep=False)
+                collector.update(read_latency(page), keep=False)
             net.restart_schedule()
             shown = ShownFrames()
             shown.start(page.evaluate(READ_DRAWS)["draws"])

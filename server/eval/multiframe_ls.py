@@ -40,7 +40,7 @@ import numpy.typing as npt
 import torch
 
 from server.eval.real_content import load_rgb
-from server.eval.real_content_sequences import KINDS, View, build_sequence, views
+from server.eval.real_content_sequences import View, build_sequence, views
 from server.eval.real_content_sources import image_source
 from server.frames.frame import Size
 from server.ops.progress import elapsed_and_left, progress
@@ -147,12 +147,7 @@ def clamp_to_samples(image: F32, color: U8) -> F32:
     """Each display pixel within the 3x3 range of its render pixel's neighbourhood in
     ``color``: temporal's output clamp (``TemporalUpscaler._finish_output``)."""
     c = torch.from_numpy(color.astype(np.float32)).permute(2, 0, 1)
-    lo, hi = ops.box_3x3(c)
-    big_h, big_w = image.shape[:2]
-    iy = ops.nearest_index(big_h, c.shape[1], c.device)
-    ix = ops.nearest_index(big_w, c.shape[2], c.device)
-    lo = lo.index_select(1, iy).index_select(2, ix)
-    hi = hi.index_select(1, iy).index_select(2, ix)
+    lo, hi = ops.render_range_at_display(c, image.shape[0], image.shape[1])
     x = torch.from_numpy(np.ascontiguousarray(image)).permute(2, 0, 1)
     return torch.minimum(torch.maximum(x, lo), hi).permute(1, 2, 0).numpy()
 
@@ -185,8 +180,6 @@ def sequence_reference(
     camera or a pan: one magnification, so every frame is a shift of the others)."""
     if kind not in KINDS_COVERED:
         raise ValueError(f"the reference covers {', '.join(KINDS_COVERED)}, not {kind!r}")
-    if kind not in KINDS:
-        raise ValueError(f"unknown sequence kind {kind!r}")
     seq = build_sequence(kind, "reference", src, src, display, scale, frames)
     cams = views(kind, frames, Size(src.shape[1], src.shape[0]), display)
     jittered = seq.frames_for(True)
