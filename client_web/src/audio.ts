@@ -14,6 +14,7 @@
 // Browsers start an AudioContext only after a user gesture: the context is made at
 // once (suspended) and resumed on the first click or key; the mute button is a gesture.
 import { WORKLET_NAME, WORKLET_SOURCE } from "./audio_worklet";
+import { ArrivalBound } from "./arrival_bound";
 import { wallUs } from "./clock";
 import { Window } from "./stats";
 
@@ -32,22 +33,35 @@ export const JITTER_MS = 20;
 // A new target closer than this to the offset in use is ignored: every change is a
 // (faded) jump, so it must be rare; 10 ms keeps sync well inside +-40 ms.
 const RESYNC_MS = 10;
-// Short windows and a low quantile for the video: a viewer that joins first sees a burst
-// of old frames (the relay's cached group, decoded at once), whose large offsets must
-// age out within a second, not hold the sound back for as long as they are the median.
-const VIDEO_WINDOW = 30; // presented frames the video offset is the first quartile of
+// The output clock's relation to page time (performanceTime - contextTime) is off by
+// 10-20 ms in the first 30 ms after the context starts (headless Chromium), and then
+// steady within 0.2 ms; a mapping made from a first reading kept that error (|A/V| 35-38
+// ms instead of 19-21) until the target next moved. On a loaded machine the output
+// device also loses time now and then (slips of 10-20 ms, the sound heard that much
+// later for good). So the mapping is redone when the relation has slipped this far
+// since it was made (also what a drifting device clock needs over hours).
+const CLOCK_SLIP_MS = 5;
+// A low quantile for the video: a viewer that joins first sees a burst of old frames
+// (the relay's cached group, decoded at once), whose large offsets must not hold the
+// sound back for as long as they are the median. And a window of 3 s (at 30 fps), not
+// 1: after a stall of a loaded page its frames were shown 250 ms late for about a
+// second, which moved the first quartile of 30 frames, so the sound jumped 245 ms
+// later to wait for pictures that were on time again by then (|A/V| 180 ms for 1.5 s);
+// the sound follows the picture only when most of 3 s of it is late.
+const VIDEO_WINDOW = 90; // presented frames the video offset is the first quartile of
 const VIDEO_QUANTILE = 25;
 // Video this much later than the sound could play is catching up (a viewer that joined
 // decodes the relay's cached group, up to a keyframe interval old, then skips ahead):
 // the sound does not wait for it, it plays as early as it can and syncs once it has.
 const MAX_HOLD_MS = 250;
 const MAX_RENDER_AHEAD_MS = 100;
-// Chunks (3 s) whose 95th percentile arrival bounds the target. Why 3 s and not 1: a
-// single stall of the page (70 ms, 7 chunks late) was 7 % of a 1 s window, so it moved
-// the target 70 ms later for the next second (the picture, held at most MAX_HOLD_MS,
-// cannot follow: A/V offsets of -70 to -90 ms, the p95 of whole runs); the chunks of
-// that stall had missed their slots already, so the move bought nothing. In 3 s one
-// stall is 2 %; stalls that come every second or two still move it.
+// Chunks (3 s) whose arrivals bound the target (ArrivalBound: their 95th percentile,
+// each stall of the page counted once). Why 3 s and not 1: a single stall of the page
+// (70 ms, 7 chunks late) was 7 % of a 1 s window, so it moved the target 70 ms later
+// for the next second (the picture, held at most MAX_HOLD_MS, cannot follow: A/V
+// offsets of -70 to -90 ms, the p95 of whole runs); the chunks of that stall had
+// missed their slots already, so the move bought nothing. Stalls that come every
+// second or two still move it.
 const LATE_WINDOW = 300;
 
 /** Per-packet stamps the page adds, wall-clock microseconds. */
@@ -67,8 +81,9 @@ export class AudioPlayer {
 	#offsetFrames?: number; // what the worklet plays with (context frame - media frame)
 	#targetMs?: number; // the target that offset was made for
 	#mappedRunning = false; // whether it was mapped with the running output clock
+	#mappedClockMs = 0; // the output clock's relation to page time it was mapped with
 	readonly #videoOffsets = new Window(VIDEO_WINDOW); // ms: present perf time - pts
-	readonly #arrivals = new Window(LATE_WINDOW); // ms: arrival perf time + jitter - pts
+	readonly #arrivals = new ArrivalBound(LATE_WINDOW); // ms: arrival perf time + jitter - pts
 	readonly #renderAhead = new Window(LATE_WINDOW); // ms: see renderAheadMs
 	// Input pts in decode order. Why not AudioData.timestamp: Chromium's Opus decoder
 	// counts output samples from the first input's timestamp, so after any gap in the
@@ -215,7 +230,7 @@ export class AudioPlayer {
 	syncParts(): { videoMs?: number; arrivalMs?: number; aheadMs?: number; targetMs?: number; offsetFrames?: number; contextMs: number } {
 		return {
 			videoMs: this.#videoOffsets.percentile(VIDEO_QUANTILE),
-			arrivalMs: this.#arrivals.percentile(95),
+			arrivalMs: this.#arrivals.bound(),
 			aheadMs: this.#renderAhead.percentile(95),
 			targetMs: this.#targetMs,
 			offsetFrames: this.#offsetFrames,
@@ -238,7 +253,7 @@ export class AudioPlayer {
 
 	/** Page time (ms) at which audio pts P should be heard, minus P. */
 	targetOffsetMs(): number | undefined {
-		const arrival = this.#arrivals.percentile(95);
+		const arrival = this.#arrivals.bound();
 		if (arrival === undefined) return undefined;
 		const earliest = arrival + this.#renderAhead.percentile(95)!;
 		const video = this.#videoOffsets.percentile(VIDEO_QUANTILE);
@@ -252,9 +267,16 @@ export class AudioPlayer {
 		const running = this.running;
 		// Compare targets, not sample offsets: the output clock's reading jitters by a
 		// callback or two, and each change of offset is a (faded) jump, so only a real
-		// move of the target, or the context starting, may cause one.
-		if (this.#targetMs !== undefined && this.#mappedRunning === running && Math.abs(target - this.#targetMs) < RESYNC_MS) return;
+		// move of the target, the context starting or its clock slipping may cause one.
 		const ts = this.context.getOutputTimestamp();
+		const clockMs = ts.performanceTime !== undefined && ts.contextTime !== undefined ? ts.performanceTime - ts.contextTime * 1000 : 0;
+		if (
+			this.#targetMs !== undefined &&
+			this.#mappedRunning === running &&
+			Math.abs(target - this.#targetMs) < RESYNC_MS &&
+			(!this.#mappedRunning || Math.abs(clockMs - this.#mappedClockMs) < CLOCK_SLIP_MS)
+		)
+			return;
 		let offset: number;
 		if (!running || !ts.contextTime || !ts.performanceTime) {
 			// Not playing yet (no gesture): map with the render clock; redone once it runs.
@@ -265,6 +287,7 @@ export class AudioPlayer {
 		}
 		this.#targetMs = target;
 		this.#mappedRunning = running && !!ts.contextTime && !!ts.performanceTime;
+		this.#mappedClockMs = clockMs;
 		this.#offsetFrames = offset;
 		this.#node?.port.postMessage({ type: "offset", offset });
 	}

@@ -2,6 +2,13 @@
 // Why bounded windows: a page left open for hours must not grow without limit, and the
 // overlay shows recent behaviour (p50/p95 of the last samples), not all-time averages.
 
+/** Nearest-rank percentile (p in [0, 100]) of a non-empty list. */
+export function percentileOf(values: readonly number[], p: number): number {
+	const sorted = [...values].sort((a, b) => a - b);
+	const rank = Math.min(sorted.length - 1, Math.max(0, Math.ceil((p / 100) * sorted.length) - 1));
+	return sorted[rank];
+}
+
 /** The latest `capacity` samples of one quantity, with percentiles. */
 export class Window {
 	readonly #values: number[] = [];
@@ -23,10 +30,7 @@ export class Window {
 
 	/** Nearest-rank percentile (p in [0, 100]); undefined while empty. */
 	percentile(p: number): number | undefined {
-		if (this.#values.length === 0) return undefined;
-		const sorted = [...this.#values].sort((a, b) => a - b);
-		const rank = Math.min(sorted.length - 1, Math.max(0, Math.ceil((p / 100) * sorted.length) - 1));
-		return sorted[rank];
+		return this.#values.length === 0 ? undefined : percentileOf(this.#values, p);
 	}
 
 	clear(): void {

@@ -114,12 +114,11 @@ def test_player_plays_the_tone_and_measures_sync(stack: LiveStack, browser: Any)
     lat = summary["latency"]
     assert lat["audio_total"]["n"] > 50 and lat["av_offset"]["n"] > 20
     summary["abs_av_offset"]["p90"] = float(np.percentile(offsets, 90))
-    # The target: sound and picture within +-40 ms. On a warm, quiet machine the p95
-    # holds it (9-22 ms in 4 runs), but a freshly started stack (cold caches, its first
-    # seconds slow) can leave the sound 60-95 ms behind for up to 7 s after the click
-    # (2 runs of 6), so only the median is asserted here; the stall test below guards
-    # the steady state's sync.
-    assert summary["abs_av_offset"]["p50"] <= 40, summary["abs_av_offset"]
+    # The target: sound and picture within +-40 ms, for 9 frames in 10. (A freshly
+    # started stack used to leave the sound 60-95 ms behind for seconds: one stall of
+    # the page, such as a first read of these stats, moved the sound's 95th-percentile
+    # arrival; ArrivalBound now counts a stall once.)
+    assert summary["abs_av_offset"]["p90"] <= 40, summary["abs_av_offset"]
     # Mute: the output goes quiet, video does not care.
     page.click("#audio-mute")
     time.sleep(0.3)
@@ -154,7 +153,8 @@ def test_a_stall_of_the_page_does_not_pull_sound_and_picture_apart(
     page.evaluate(STALL, 80)
     page.wait_for_timeout(3000)
     after = stats(page)
-    offsets = np.abs(np.array(after["latency"]["av_offset"]["samples"][start:]))
+    signed = np.array(after["latency"]["av_offset"]["samples"][start:])
+    offsets = np.abs(signed)
     target_after = after["audio"]["sync"]["targetMs"]
     print(
         f"stall: target {target_before:.1f} -> {target_after:.1f} ms, "
@@ -163,7 +163,11 @@ def test_a_stall_of_the_page_does_not_pull_sound_and_picture_apart(
     )
     # A loaded machine shows 15-30 fps; what matters is the offsets of the frames shown.
     assert offsets.size >= 20, offsets.size
-    assert np.percentile(offsets, 90) <= 40, np.round(offsets, 1).tolist()
+    assert np.percentile(offsets, 90) <= 40, (
+        np.round(signed, 1).tolist(),
+        after["audio"]["sync"],
+        {k: after["audio"][k] for k in ("videoHeld", "videoHeldMeanMs", "underrunFrames")},
+    )
     page.close()
 
 
