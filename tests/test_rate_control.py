@@ -197,6 +197,35 @@ def test_feedback_that_stops_falls_back_to_the_safe_rate_and_recovers() -> None:
     assert rc.state.bitrate > CEILING * SAFE_FRACTION
 
 
+def _gone_silent(rc: RateController, source: str, until_s: float) -> None:
+    """A player that reported until ``until_s`` and then nothing: a closed tab whose
+    connection lingers, or a hidden one whose timers the browser has slowed."""
+    t = 0.25
+    while t <= until_s:
+        rc.feedback(source, FeedbackFields(player=True, frames=[]), t)
+        t += 0.25
+
+
+def test_a_silent_player_beside_one_that_reports_does_not_hold_the_rate() -> None:
+    rc = RateController(CEILING, FLOOR)
+    _gone_silent(rc, "closed-tab", 1.0)
+    run, rc = simulate(lambda t: 1e12, 10, controller=rc)
+    assert min(run.between(2, 10)) == CEILING, run.between(2, 10)
+    assert rc.state.reason != "no feedback" and rc.state.players == 2
+    # Once the player that reports leaves, the silent one sets the safe rate.
+    rc.forget("viewer")
+    assert rc.update(10.5) == int(CEILING * SAFE_FRACTION)
+    assert rc.state.reason == "no feedback"
+
+
+def test_a_silent_player_does_not_keep_the_others_from_probing() -> None:
+    rc = RateController(CEILING, FLOOR)
+    _gone_silent(rc, "hidden-tab", 1.0)
+    run, rc = simulate(step_capacity(19.0), 29.5, controller=rc, encoder_yield=0.6)
+    assert rc.probe.succeeded >= 2, (rc.probe.started, rc.probe.succeeded)
+    assert run.rate_at(29.0) > 0.7 * CEILING, run.between(19, 30)
+
+
 def test_lies_are_clamped_to_what_the_session_sent() -> None:
     rc = RateController(CEILING, FLOOR)
     rc.frame_sent(0, 1000, 0.0)

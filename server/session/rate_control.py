@@ -36,7 +36,8 @@ is a visible stall every few seconds.
   the safe rate below, then up from there once frames flow.
 - **No feedback**: a player that sends input but no feedback (an old page), or
   whose feedback stopped for ``STALE_S`` (its link died, or it lies by silence),
-  gets ``SAFE_FRACTION`` of the configured rate until it reports again. With no
+  gets ``SAFE_FRACTION`` of the configured rate until it reports again, unless
+  another player reports: then the silent one is served as a spectator. With no
   player at all (spectators only, or nobody) the configured rate stands:
   spectators keep the relay's skip-ahead.
 
@@ -56,6 +57,7 @@ from server.session.link_probe import PROBE_S, LinkProbe
 log = logging.getLogger(__name__)
 
 QUEUE_OVERUSE_MS = 25.0
+SILENT = "no feedback"  # the reason of a player held to the safe rate for its silence
 QUEUE_HIGH_MS = 80.0
 OVERUSE_REPORTS = 2
 STRETCH_OVERUSE = 1.03
@@ -199,9 +201,16 @@ class RateController:
         """The rate the encoder should use now, or None when it need not change."""
         dt = 0.0 if self._last_update_s is None else max(0.0, now_s - self._last_update_s)
         self._last_update_s = now_s
-        rates: list[tuple[float, str]] = []
-        for viewer in self._players.values():
-            rates.append(self._viewer_rate(viewer, now_s, dt))
+        rates = [self._viewer_rate(viewer, now_s, dt) for viewer in self._players.values()]
+        # A silent player sets the safe rate only while no player reports: beside one
+        # that does, it is served as spectators are (the relay's skip-ahead). A closed
+        # tab whose connection lingered (headless Chromium kept one alive until the
+        # relay stopped) and a hidden tab whose timers the browser has slowed to one a
+        # minute are silent too; each held every player to the safe rate (a quarter of
+        # the rate, at half the frame rate) for as long as it stayed.
+        heard = [r for r in rates if r[1] != SILENT]
+        if heard:
+            rates = heard
         if rates:
             rate, reason = min(rates)
         else:
@@ -228,11 +237,11 @@ class RateController:
         if viewer.last_report_s is None:
             if now_s - viewer.first_seen_s >= SILENT_PLAYER_S:
                 viewer.rate = min(viewer.rate, self.safe)
-                return viewer.rate, "no feedback"
+                return viewer.rate, SILENT
             return viewer.rate, "steady"
         if now_s - viewer.last_report_s >= STALE_S:
             viewer.rate = min(viewer.rate, self.safe)
-            return viewer.rate, "no feedback"
+            return viewer.rate, SILENT
         if now_s - viewer.last_decrease_s < INCREASE_HOLD_S:
             return viewer.rate, "congestion"
         sample = viewer.last_sample
@@ -333,13 +342,21 @@ class RateController:
         delivered = sample.delivered_bps if sample is not None else None
         return max(delivered or 0.0, viewer.proved(now_s))
 
+    def _heard(self, now_s: float) -> list[_Viewer]:
+        """The players whose reports are fresh."""
+        return [
+            v
+            for v in self._players.values()
+            if v.last_report_s is not None and now_s - v.last_report_s < STALE_S
+        ]
+
     def _maybe_probe(self, now_s: float) -> None:
         """Start a probe when the player with the lowest rate has been held (by what
         its link has shown, or near its last congestion) for ``PROBE_WAIT_S``, not
         just after a decrease."""
         if not self._players or not self.probe.idle(now_s):
             return
-        viewer = min(self._players.values(), key=lambda v: v.rate)
+        viewer = min(self._heard(now_s) or self._players.values(), key=lambda v: v.rate)
         since = viewer.held_since_s
         if since is None or now_s - since < PROBE_WAIT_S:
             return
