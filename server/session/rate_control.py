@@ -342,13 +342,13 @@ class RateController:
         delivered = sample.delivered_bps if sample is not None else None
         return max(delivered or 0.0, viewer.proved(now_s))
 
-    def _heard(self, now_s: float) -> list[_Viewer]:
-        """The players whose reports are fresh."""
-        return [
-            v
-            for v in self._players.values()
+    def _heard(self, now_s: float) -> dict[str, _Viewer]:
+        """The players whose reports are fresh, by source."""
+        return {
+            source: v
+            for source, v in self._players.items()
             if v.last_report_s is not None and now_s - v.last_report_s < STALE_S
-        ]
+        }
 
     def _maybe_probe(self, now_s: float) -> None:
         """Start a probe when the player with the lowest rate has been held (by what
@@ -356,7 +356,8 @@ class RateController:
         just after a decrease."""
         if not self._players or not self.probe.idle(now_s):
             return
-        viewer = min(self._heard(now_s) or self._players.values(), key=lambda v: v.rate)
+        heard = self._heard(now_s)
+        viewer = min((heard or self._players).values(), key=lambda v: v.rate)
         since = viewer.held_since_s
         if since is None or now_s - since < PROBE_WAIT_S:
             return
@@ -365,12 +366,7 @@ class RateController:
         link = self._link_bps(viewer, now_s)
         if link <= 0 or min(self.ceiling, self.probe.gain * link) < MIN_PROBE_STEP * link:
             return
-        reporting = [
-            source
-            for source, v in self._players.items()
-            if v.last_report_s is not None and now_s - v.last_report_s < STALE_S
-        ]
-        target = self.probe.start(link, self.ceiling, reporting, now_s)
+        target = self.probe.start(link, self.ceiling, list(heard), now_s)
         self._probe_started_s = now_s
         log.info(
             "rate: probing %.2f Mbit/s (rate %.2f, link shown %.2f)",
