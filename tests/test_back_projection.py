@@ -8,7 +8,14 @@ import pytest
 import torch
 
 from server.game.render.transforms import jitter_offset, jitter_phase_count
-from upscalers.back_projection import AxisTaps, axis_taps, back_project, predict, regular_2x
+from upscalers.back_projection import (
+    AxisTaps,
+    axis_taps,
+    back_project,
+    precondition_filter,
+    predict,
+    regular_2x,
+)
 
 
 def _dense(index: np.ndarray, weight: np.ndarray, n_cols: int) -> np.ndarray:
@@ -132,3 +139,46 @@ def test_the_2x_pattern_is_the_tables_away_from_the_edges(n_render: int, jitter:
     assert reg.r_lo <= 2 and reg.r_hi >= n_render - 2
     assert reg.q_lo <= 2 and reg.q_hi >= n_render - 2
     assert regular_2x(axis_taps(n_render, 3 * n_render, jitter)) is None
+
+
+def test_the_preconditioning_filter_keeps_the_mean_and_lifts_nyquist() -> None:
+    """[-c, 1 + 2c, -c] per axis: a constant correction passes as it is, a checkerboard
+    (the display's Nyquist frequency on both axes) comes out (1 + 4c)^2 times larger
+    inside, and the edges replicate (no pull towards zero at the border)."""
+    c = 0.5
+    flat = torch.full((3, 6, 8), 0.25)
+    assert torch.allclose(precondition_filter(flat, c), flat)
+    yy, xx = torch.meshgrid(torch.arange(6), torch.arange(8), indexing="ij")
+    board = ((yy + xx) % 2 * 2 - 1).float().expand(3, 6, 8)
+    out = precondition_filter(board, c)
+    assert torch.allclose(out[:, 1:-1, 1:-1], board[:, 1:-1, 1:-1] * (1 + 4 * c) ** 2)
+    ramp = torch.arange(8.0).expand(3, 6, 8)
+    assert torch.allclose(precondition_filter(ramp, c)[:, :, 1:-1], ramp[:, :, 1:-1])
+
+
+def test_a_preconditioned_step_matches_the_filtered_correction() -> None:
+    """back_project with ``precondition`` adds the step times the filtered correction of
+    the plain step, nothing else."""
+    rng = np.random.default_rng(3)
+    history = torch.from_numpy(rng.random((3, 16, 20), np.float32))
+    samples = torch.from_numpy(rng.random((3, 8, 10), np.float32))
+    tx, ty = axis_taps(10, 20, 0.2), axis_taps(8, 16, -0.3)
+    plain, pre = history.clone(), history.clone()
+    back_project(plain, samples, tx, ty, 1.0)
+    back_project(pre, samples, tx, ty, 0.4, precondition=0.5)
+    expected = history + 0.4 * precondition_filter(plain - history, 0.5)
+    assert torch.allclose(pre, expected, atol=1e-5)
+
+
+def test_a_map_of_preconditionings_filters_each_pixel_with_its_own() -> None:
+    """Still and moving pixels take different strengths; each output pixel is what the
+    whole image filtered with its own c gives there."""
+    rng = np.random.default_rng(5)
+    correction = torch.from_numpy(rng.standard_normal((3, 10, 12)).astype(np.float32))
+    moving = torch.zeros(10, 12, dtype=torch.bool)
+    moving[3:7, 4:] = True
+    c_map = torch.where(moving, 0.35, 0.5)
+    expected = torch.where(
+        moving, precondition_filter(correction, 0.35), precondition_filter(correction, 0.5)
+    )
+    assert torch.allclose(precondition_filter(correction, c_map), expected, atol=1e-6)

@@ -183,15 +183,19 @@ def test_zoom_motion_is_radial() -> None:
 
 def test_cut_frame_carries_reset_and_a_new_picture() -> None:
     seq = build_sequence("cut", "t", _photo(6), _photo(7), Size(64, 48), 2.0, 8)
-    flags = [f.meta.flags for f in seq.jittered]
+    # Every frame says its samples are area averages (how build_sequence makes them).
+    flags = [f.meta.flags & ~FrameFlags.AREA_SAMPLES for f in seq.jittered + seq.unjittered]
+    assert all(f.meta.flags & FrameFlags.AREA_SAMPLES for f in seq.jittered + seq.unjittered)
     assert seq.cut == 4
     assert flags[0] == flags[4] == FrameFlags.RESET
-    assert all(f == FrameFlags.NONE for i, f in enumerate(flags) if i not in (0, 4))
+    assert flags[8] == flags[12] == FrameFlags.RESET  # the unjittered frames
+    assert all(f == FrameFlags.NONE for i, f in enumerate(flags) if i % 8 not in (0, 4))
     assert not seq.jittered[4].motion.any()
     before, after = seq.truth[3].astype(int), seq.truth[4].astype(int)
     assert np.abs(before - after).mean() > 10  # another photograph, not a small pan step
     first = build_sequence("first", "t", _photo(6), _photo(7), Size(64, 48), 2.0, 8)
-    assert len(first.truth) == 1 and first.jittered[0].meta.flags == FrameFlags.RESET
+    assert len(first.truth) == 1
+    assert first.jittered[0].meta.flags == FrameFlags.RESET | FrameFlags.AREA_SAMPLES
 
 
 def test_only_photograph_sources_are_evaluated(tmp_path: Path) -> None:

@@ -86,6 +86,22 @@ def test_backends_agree_under_motion(render: Size, scale: float) -> None:
     _run_both(_moving_sequence(render, scale), render.scaled(scale))
 
 
+@pytest.mark.parametrize(
+    ("render", "scale"),
+    [(RENDER, 2.0), (Size(41, 23), 3.0), (Size(161, 89), 1.5), (Size(7, 5), 2.0)],
+)
+def test_backends_agree_on_area_samples(render: Size, scale: float) -> None:
+    """Frames flagged AREA_SAMPLES take the preconditioned back-projection (its own
+    kernels on the numba side) and the wider history box, still and moving."""
+    frames = [
+        replace(f, meta=replace(f.meta, flags=f.meta.flags | FrameFlags.AREA_SAMPLES))
+        for f in _moving_sequence(render, scale)
+    ]
+    for f in frames[5:]:  # still and moving pixels in one frame: two strengths
+        f.motion[:, : render.width // 2] = 0.0
+    _run_both(frames, render.scaled(scale))
+
+
 @pytest.mark.parametrize("scene", ["slow_pan", "moving_objects"])
 def test_backends_agree_on_game_frames(scene: str) -> None:
     frames = _render_frames(scene, Size(160, 90), 2.0, [i / 30 for i in range(6)], True, None)

@@ -39,6 +39,7 @@ from functools import lru_cache
 import numpy as np
 import numpy.typing as npt
 import torch
+import torch.nn.functional as F
 
 I64Array = npt.NDArray[np.int64]
 F32Array = npt.NDArray[np.float32]
@@ -209,16 +210,42 @@ def back_project(
     taps_x: AxisTaps,
     taps_y: AxisTaps,
     step: float | torch.Tensor,
+    precondition: float | torch.Tensor = 0.0,
 ) -> None:
     """One step on the (3, H, W) history in place, towards explaining the (3, h, w)
-    samples (same colour space); ``step`` a number or an (H, W) map of them."""
+    samples (same colour space); ``step`` a number or an (H, W) map of them;
+    ``precondition`` (a number or an (H, W) map) filters the correction first
+    (``precondition_filter``; 0: not)."""
     error = samples - predict(history, taps_x, taps_y)
     # The error back to the display pixels, along the rows ((3, H, w)), then the columns.
     by = _weight(taps_y.back_weight, history).unsqueeze(-1)
     down = (error[:, _index(taps_y.back_index, history), :] * by).sum(2)
     bx = _weight(taps_x.back_weight, history)
     correction = (down[:, :, _index(taps_x.back_index, history)] * bx).sum(-1)
+    if isinstance(precondition, torch.Tensor) or precondition > 0.0:
+        correction = precondition_filter(correction, precondition)
     if isinstance(step, torch.Tensor):
         history.addcmul_(correction, step.to(history.dtype))
     else:
         history.add_(correction, alpha=step)
+
+
+def precondition_filter(correction: torch.Tensor, c: float | torch.Tensor) -> torch.Tensor:
+    """The (3, H, W) correction filtered per axis by [-c, 1 + 2c, -c], edges replicated:
+    gain 1 at zero frequency, 1 + 4c at Nyquist. A correction has passed the footprint's
+    box twice (prediction, then back), which leaves little of the detail near the
+    display's Nyquist frequency; this gives that part back its weight, as the inverse
+    of the averaged normal operator would (``TemporalParams.area_precondition``). ``c``
+    a number or an (H, W) map: each output pixel is filtered with its own c, along both
+    axes. The numba kernel ``precondition_add`` computes the same sums in the same
+    order."""
+    h = correction.shape[1]
+    padded = F.pad(correction.unsqueeze(0), (1, 1, 1, 1), mode="replicate")[0]
+    centre, side = 1.0 + 2.0 * c, -c
+    # Rows y - 1, y and y + 1 of the padding, each along the row with output row y's c.
+    above, here, below = (
+        padded[:, r : r + h, 1:-1] * centre
+        + (padded[:, r : r + h, :-2] + padded[:, r : r + h, 2:]) * side
+        for r in range(3)
+    )
+    return here * centre + (above + below) * side

@@ -39,12 +39,14 @@ Per frame:
    these steps recover what the overlapping, shifted boxes still tell apart. The
    fraction is larger on moving pixels, whose history this frame's resampling
    blurred (``moving_back_projection``). Not on a reset frame, which is mostly EASU's
-   start.
+   start. On frames flagged AREA_SAMPLES (true box averages, as photographs and video
+   downscaled by area) the correction is preconditioned (``area_precondition``).
 4. Output: uint8 sRGB (3, H, W), what ring U holds; conversion from YCoCg, scale,
    rounding and clamp are one matrix product and a clamp. RCAS can sharpen it
    (``output_sharpness``; off by default since back-projection) and each display
-   pixel is clamped to the 3x3 range of the frame's colour around its render pixel:
-   detail without a halo past the input's local range. Not on a reset frame.
+   pixel is clamped to the 3x3 range of the frame's colour around its render pixel,
+   widened by ``output_clamp_slack`` levels: detail without a halo past the input's
+   local range. Not on a reset frame.
 
 Colour space: history is kept in YCoCg of the *sRGB-encoded* values. The
 input and the output are sRGB, so no transfer-function work happens at display
@@ -243,7 +245,11 @@ class TemporalUpscaler(Upscaler):
         if step is not None and not reset:
             work = history[0] if history.dtype == torch.float32 else history[0].float()
             taps = self._back_taps(render, display, jit)
-            back_project(work, raw, *taps, self._step_map(step, mv, display))
+            area = bool(frame.meta.flags & FrameFlags.AREA_SAMPLES)
+            moving_step = p.moving_step(ops.axis_scale(render, display))
+            steps = self._moving_map(step, moving_step, mv, display)
+            pre = self._moving_map(p.precondition(area), p.precondition(area, True), mv, display)
+            back_project(work, raw, *taps, steps, pre)
             if work.data_ptr() != history.data_ptr():
                 history[0].copy_(work)
         rgb8 = ops.ycocg_to_rgb8(history[0])
@@ -251,16 +257,17 @@ class TemporalUpscaler(Upscaler):
         # there on photographs, and it stays as it is.
         return rgb8 if reset else self._finish_output(rgb8, frame)
 
-    def _step_map(self, still: float, mv: torch.Tensor, display: Size) -> float | torch.Tensor:
-        """Back-projection's step: ``still`` everywhere, or an (H, W) map with
-        ``TemporalParams.moving_step`` on display pixels whose render pixel (nearest) has
-        non-zero dilated motion ``mv`` (2, h, w)."""
+    def _moving_map(
+        self, still: float, moving_value: float | None, mv: torch.Tensor, display: Size
+    ) -> float | torch.Tensor:
+        """A back-projection setting (its step, its preconditioning): ``still`` everywhere,
+        or an (H, W) map with ``moving_value`` on display pixels whose render pixel
+        (nearest) has non-zero dilated motion ``mv`` (2, h, w)."""
         _, h, w = mv.shape
-        moving_step = self.params.moving_step(ops.axis_scale(Size(w, h), display))
-        if moving_step is None or moving_step == still or not bool(mv.any()):
+        if moving_value is None or moving_value == still or not bool(mv.any()):
             return still
         moving = (mv[0] != 0.0) | (mv[1] != 0.0)
-        steps = torch.where(moving, moving_step, still).to(torch.float32)
+        steps = torch.where(moving, moving_value, still).to(torch.float32)
         iy = ops.nearest_index(display.height, h, mv.device)
         ix = ops.nearest_index(display.width, w, mv.device)
         return steps.index_select(0, iy).index_select(1, ix)
@@ -301,7 +308,7 @@ class TemporalUpscaler(Upscaler):
             sharp = self._rcas(padded)
             out = sharp.mul_(255.0).add_(0.5).floor_().clamp_(0.0, 255.0)
         color = ops.as_tensor(frame.color, dev).permute(2, 0, 1).to(torch.float32)
-        lo, hi = ops.render_range_at_display(color, big_h, big_w)
+        lo, hi = ops.render_range_at_display(color, big_h, big_w, self.params.output_clamp_slack)
         return torch.minimum(torch.maximum(out, lo), hi).to(torch.uint8)
 
     def _host_for(self, render: Size, display: Size, dev: torch.device) -> HostTemporal | None:
@@ -345,9 +352,11 @@ class TemporalUpscaler(Upscaler):
         h, w = frame.depth.shape[:2]
         ycocg = ops.rgb8_to_ycocg(ops.as_tensor(frame.color, dev), dt)
         # The box of the samples as rendered, before the presharpening, widened by
-        # history_clamp_slack: it bounds the history and the sharpened current frame alike.
+        # history_clamp_slack (area_history_clamp_slack on area samples): it bounds the
+        # history and the sharpened current frame alike.
         raw = ycocg
-        lo, hi = ops.widen_box(*ops.box_3x3(raw), p.history_clamp_slack)
+        area = bool(frame.meta.flags & FrameFlags.AREA_SAMPLES)
+        lo, hi = ops.widen_box(*ops.box_3x3(raw), p.history_slack(area))
         if p.presharpen > 0.0:
             ycocg = ops.sharpen(raw, p.presharpen)
         depth = ops.as_tensor(frame.depth, dev).to(dt)

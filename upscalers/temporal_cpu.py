@@ -25,7 +25,7 @@ import numpy as np
 import numpy.typing as npt
 import torch
 
-from server.frames.frame import RenderFrame, Size
+from server.frames.frame import FrameFlags, RenderFrame, Size
 from upscalers import fsr1_cpu_kernels as fsr1_kernels
 from upscalers import temporal_cpu_kernels as kernels
 from upscalers import temporal_ops as ops
@@ -178,6 +178,9 @@ class HostTemporal:
         self._near_x = ops.nearest_index(big_w, w, _CPU).numpy()
         self._near_y = ops.nearest_index(big_h, h, _CPU).numpy()
         self._steps = np.empty((h, w), np.float32)  # back-projection's step per render pixel
+        self._preconditions = np.empty((h, w), np.float32)  # and its preconditioning
+        # The whole correction, for area samples' preconditioning (made at first need).
+        self._correction: F32Array | None = None
 
     def reset(self) -> None:
         """Forget the history (the buffers are kept)."""
@@ -242,7 +245,13 @@ class HostTemporal:
             tx = _kernel_x_tables(w, big_w, jit[0])
             ty = cached_axis_taps(h, big_h, jit[1])
             reg = cached_regular_2x(w, big_w, jit[0]) if self.scale == 2 else None
-            self._back_project(tx, ty, reg, self._step_map(p.back_projection, any_moving), out)
+            steps = self._moving_map(self._steps, p.back_projection, self._moving_step, any_moving)
+            area = bool(frame.meta.flags & FrameFlags.AREA_SAMPLES)
+            pre = None
+            if area and p.precondition(area) > 0.0:
+                still_c, moving_c = p.precondition(area), p.precondition(area, True)
+                pre = self._moving_map(self._preconditions, still_c, moving_c, any_moving)
+            self._back_project(tx, ty, reg, steps, out, pre)
         stops = p.output_sharpness
         if stops is not None:
             # TemporalUpscaler._finish_output: the same RCAS kernel as FSR 1's.
@@ -254,18 +263,26 @@ class HostTemporal:
         if stops is not None or p.back_projection is not None:
             color = np.ascontiguousarray(frame.color, dtype=np.uint8)
             kernels.rgb8_box_3x3(color, self._box_lo, self._box_hi)
-            kernels.clamp_rgb8(out, self._box_lo, self._box_hi, self._near_x, self._near_y)
+            kernels.clamp_rgb8(
+                out, self._box_lo, self._box_hi, self._near_x, self._near_y,
+                p.output_clamp_slack,
+            )  # fmt: skip
 
-    def _step_map(self, still: float, any_moving: bool) -> npt.NDArray[np.float32]:
-        """Back-projection's step per render pixel (``TemporalUpscaler._step_map``):
-        ``TemporalParams.moving_step`` where the dilated motion is not zero."""
-        steps = self._steps
-        steps.fill(still)
-        moving_step = self._moving_step
-        if moving_step is not None and any_moving:
+    def _moving_map(
+        self,
+        values: npt.NDArray[np.float32],
+        still: float,
+        moving_value: float | None,
+        any_moving: bool,
+    ) -> npt.NDArray[np.float32]:
+        """A back-projection setting per render pixel, into ``values`` (h, w)
+        (``TemporalUpscaler._moving_map``): ``moving_value`` where the dilated motion is
+        not zero, ``still`` elsewhere."""
+        values.fill(still)
+        if moving_value is not None and any_moving:
             d = self._buf.dilated
-            steps[(d[0] != 0.0) | (d[1] != 0.0)] = moving_step
-        return steps
+            values[(d[0] != 0.0) | (d[1] != 0.0)] = moving_value
+        return values
 
     def _back_project(
         self,
@@ -274,11 +291,13 @@ class HostTemporal:
         reg: Regular2x | None,
         steps: npt.NDArray[np.float32],
         out: npt.NDArray[np.uint8],
+        preconditions: npt.NDArray[np.float32] | None = None,
     ) -> None:
         """``back_projection.back_project`` on the new history (the spare buffer) with the
         kernels, then the history into ``out``; ``tx`` the x tables as
         ``_kernel_x_tables`` gives them; the column passes follow the tables' pattern
-        ``reg`` at 2x where there is one."""
+        ``reg`` at 2x where there is one; ``preconditions`` (h, w), where given, filter
+        the correction first (``back_projection.precondition_filter``)."""
         hist, across = self._spare, self._across
         fx_i, fx_w, bx_i, bx_w = tx
         if reg is None:
@@ -289,7 +308,14 @@ class HostTemporal:
             )
         kernels.bp_error(self._buf.raw, ty.forward_index, ty.forward_weight, across, self._error)
         kernels.bp_back_y(self._error, ty.back_index, ty.back_weight, across)
-        if reg is None:
+        if preconditions is not None:
+            if self._correction is None:
+                self._correction = np.zeros_like(hist)
+            kernels.bp_correction_x(bx_i, bx_w, across, self._correction)
+            kernels.precondition_add(
+                hist, self._correction, preconditions, steps, self._near_x, self._near_y, out
+            )
+        elif reg is None:
             kernels.bp_back_x(hist, bx_i, bx_w, steps, self._near_x, self._near_y, across, out)
         else:
             kernels.bp_back_x_2x(
@@ -347,7 +373,8 @@ class HostTemporal:
         self._prev_jitter = jit
         kernels.render_finish(
             b.raw, b.lin, b.prev_weight, mean_weight, np.float32(p.max_weight),
-            np.float32(p.history_clamp_slack), b.lo, b.hi, self._prev_far, self._weight,
+            np.float32(p.history_slack(bool(frame.meta.flags & FrameFlags.AREA_SAMPLES))),
+            b.lo, b.hi, self._prev_far, self._weight,
         )  # fmt: skip
         return moving
 

@@ -858,16 +858,19 @@ def rgb8_box_3x3(color, lo, hi):
 
 
 @njit(parallel=True, **_JIT)
-def clamp_rgb8(out, lo, hi, near_x, near_y):
+def clamp_rgb8(out, lo, hi, near_x, near_y, slack):
     """Clamp display pixel (Y, X) of ``out`` (H, W, 3) uint8 to the box of render pixel
-    (near_y[Y], near_x[X]) (``ops.nearest_index``)."""
+    (near_y[Y], near_x[X]) (``ops.nearest_index``) widened by ``slack`` levels each way
+    (an int; the box and ``out`` are uint8, so the sums are taken as ints)."""
     big_h, big_w = out.shape[0], out.shape[1]
     for y in prange(big_h):
         i = near_y[y]
         for x in range(big_w):
             j = near_x[x]
             for c in range(3):
-                out[y, x, c] = min(max(out[y, x, c], lo[i, j, c]), hi[i, j, c])
+                low = np.int32(lo[i, j, c]) - slack
+                high = np.int32(hi[i, j, c]) + slack
+                out[y, x, c] = min(max(np.int32(out[y, x, c]), low), high)
 
 
 # Back-projection (``back_projection.back_project``), four passes over the frame: the
@@ -1003,4 +1006,58 @@ def bp_back_x_2x(hist, bx_i, bx_w, offsets, reg_w, q_lo, q_hi, steps, near_y, ac
                 step = step_row[q]
                 row[2 * q] = fma32(step, even[q], row[2 * q])
                 row[2 * q + 1] = fma32(step, odd[q], row[2 * q + 1])
+        _rgb_row(hist, y, out)
+
+
+# Preconditioned back-projection (frames flagged AREA_SAMPLES only, never the stream's
+# renders): the correction is summed whole into a buffer, filtered per axis by
+# [-c, 1 + 2c, -c] (``back_projection.precondition_filter``, the same sums in the same
+# order) and added with the step. Generic tables at every scale: this path is for
+# photographs and video, where a millisecond matters less than on the game's frames.
+
+
+@njit(parallel=True, **_JIT)
+def bp_correction_x(bx_i, bx_w, across, corr):
+    """The error back along the columns (``bp_back_x``'s sums) into ``corr`` (3, H, W)."""
+    big_h, big_w = corr.shape[1], corr.shape[2]
+    n_bx = bx_i.shape[0]
+    for y in prange(big_h):
+        for c in range(3):
+            down, dst = across[c, y], corr[c, y]
+            dst[:] = F32(0.0)
+            for u in range(n_bx):
+                idx, wt = bx_i[u], bx_w[u]
+                for x in range(big_w):
+                    dst[x] += down[idx[x]] * wt[x]
+
+
+@njit(inline="always", **_JIT)
+def _filter_at(row, x, centre, side):
+    """``row`` at ``x`` filtered by [side, centre, side], its ends replicated."""
+    n = row.shape[0]
+    return row[x] * centre + (row[max(x - 1, 0)] + row[min(x + 1, n - 1)]) * side
+
+
+@njit(parallel=True, **_JIT)
+def precondition_add(hist, corr, cs, steps, near_x, near_y, out):
+    """``corr`` (3, H, W) filtered per axis by [-c, 1 + 2c, -c] (along the rows first,
+    edges replicated), c that of the display pixel's nearest render pixel in ``cs``
+    (h, w), added to the history times its step (``steps``), and the history as uint8
+    sRGB into ``out`` (``bp_back_x``)."""
+    big_h, big_w = hist.shape[1], hist.shape[2]
+    for y in prange(big_h):
+        step_row, c_row = steps[near_y[y]], cs[near_y[y]]
+        yu, yd = max(y - 1, 0), min(y + 1, big_h - 1)
+        for ch in range(3):
+            above, here, below = corr[ch, yu], corr[ch, y], corr[ch, yd]
+            row = hist[ch, y]
+            for x in range(big_w):
+                c = c_row[near_x[x]]
+                centre, side = F32(1.0) + F32(2.0) * c, -c
+                v = (
+                    _filter_at(here, x, centre, side) * centre
+                    + (_filter_at(above, x, centre, side) + _filter_at(below, x, centre, side))
+                    * side
+                )
+                row[x] = fma32(step_row[near_x[x]], v, row[x])
         _rgb_row(hist, y, out)

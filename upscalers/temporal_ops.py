@@ -64,11 +64,14 @@ def box_3x3(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def render_range_at_display(
-    color: torch.Tensor, big_h: int, big_w: int
+    color: torch.Tensor, big_h: int, big_w: int, slack: float = 0.0
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The output clamp's bounds: per display pixel, the min and max of the 3x3
-    neighbourhood of its render pixel (nearest) in ``color`` (C, h, w)."""
+    neighbourhood of its render pixel (nearest) in ``color`` (C, h, w), widened by
+    ``slack`` (levels of ``color``) each way."""
     lo, hi = box_3x3(color)
+    if slack:
+        lo, hi = lo - slack, hi + slack
     iy = nearest_index(big_h, color.shape[1], color.device)
     ix = nearest_index(big_w, color.shape[2], color.device)
     return (

@@ -101,6 +101,33 @@ class TemporalParams:
     # they were, where 0.5 was chosen; at 3x the step is 0.33. It costs box-filtered
     # photographs at 3x (training photographs, against 0.5: pans -0.30 dB, zooms -0.25).
     moving_step_scale: float = 2.0
+    # Frames flagged FrameFlags.AREA_SAMPLES (each sample the average over its footprint:
+    # a photograph or video downscaled by area) fit that box model exactly, so there the
+    # back-projection's correction is preconditioned: filtered per axis by [-c, 1 + 2c, -c]
+    # before it is added (back_projection.precondition). Each frame's correction has passed
+    # the footprint's box twice (prediction and back), which leaves little of the detail
+    # near the display's Nyquist frequency: a fixed fraction a frame recovered it too
+    # slowly for 32 frames, where a least-squares solve over all frames' samples got 1-4
+    # dB more (docs/reports/eval_multiframe_ls.json). At c = 0.5 the filter's gain is 2 at
+    # half the Nyquist frequency, where it inverts the averaged normal operator of a
+    # 2-pixel box (0.5 + 0.5 cos w), and 3 at Nyquist, where that inverse is unbounded.
+    # Chosen on 6 training photographs (2 per source, 480x270, 2x, torch path, against
+    # none): still cameras +0.47 dB, pans +0.37 (0.25: +0.36 / +0.32; 0.75: +0.39 / +0.12;
+    # 1.0: +0.11 / -0.52). A larger step or momentum on top lost. On the game's point
+    # samples it follows their aliasing (c = 0.5 at 2x: mean -0.87 dB, thin_detail -2.0),
+    # so it is only for area samples. 0: off.
+    area_precondition: float = 0.5
+    # The same on moving pixels (non-zero dilated motion). Their history remembers two
+    # frames or so (moving_max_weight), a few jitter phases, where the filter inverts the
+    # operator averaged over many: a full gain follows more of each frame's aliasing.
+    # Chosen on the same photographs' pans (mean of frames 8-31 against 0.5): 0.35 +0.05
+    # dB (0.15 -0.10, 0.25 +0.01, 0.3 +0.04, 0.4 +0.05); their fall from frame 8 to frame
+    # 31 -0.07 dB against -0.10.
+    area_moving_precondition: float = 0.35
+    # history_clamp_slack on area samples: 1.0 there (+0.13 dB still, +0.05 pan on the
+    # training photographs with the preconditioning; 2.0 +0.16 / +0.07), where the game's
+    # thin_detail keeps 0.5.
+    area_history_clamp_slack: float = 1.0
 
     # RCAS of the output, in stops (0 strongest; None: off), as FSR 2 sharpens after
     # accumulation: the history stays unsharpened, and RCAS never leaves the range of a
@@ -110,6 +137,26 @@ class TemporalParams:
     # +0.6 dB on the game's scenes.)
     # Not on a reset frame, mostly EASU's start and sharp already.
     output_sharpness: float | None = None
+    # The output clamp (the 3x3 range of the frame's own colour around each display
+    # pixel's render pixel) widened by this many 8-bit levels each way: issue 19 allows
+    # +-4 past the local input range on a step and a checkerboard, and the detail a box
+    # average hides lies just past it. 3 (one level short of the allowance), against 0:
+    # game scenes at 2x (640x360, torch path) mean +0.07 dB (thin_detail -0.04); on the
+    # training photographs with area_precondition, still cameras +0.57 dB, pans +0.35
+    # (2 levels: +0.48 / +0.30). A flat neighbourhood comes out exact all the same: its
+    # history holds no detail to let through.
+    output_clamp_slack: int = 3
+
+    def history_slack(self, area_samples: bool) -> float:
+        """The history clamp's slack for frames of this kind."""
+        return self.area_history_clamp_slack if area_samples else self.history_clamp_slack
+
+    def precondition(self, area_samples: bool, moving: bool = False) -> float:
+        """Back-projection's preconditioning for frames of this kind (0: none), on still
+        or on moving pixels."""
+        if not area_samples:
+            return 0.0
+        return self.area_moving_precondition if moving else self.area_precondition
 
     def moving_step(self, scale: float) -> float | None:
         """Back-projection's step on moving pixels at this upscaling factor."""

@@ -30,10 +30,11 @@ import sys
 import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import replace
 
 import numpy as np
 
-from server.frames.frame import Camera, FrameMeta, RenderFrame, Size
+from server.frames.frame import Camera, FrameFlags, FrameMeta, RenderFrame, Size
 from upscalers.fsr1 import EasuRcasUpscaler, EasuUpscaler
 from upscalers.temporal import TemporalUpscaler
 
@@ -72,6 +73,9 @@ def _warm_temporal() -> None:
             temporal = TemporalUpscaler(device="cpu", backend="numba")
             for _ in range(2):  # the second frame fetches history
                 temporal.upscale(frame, display)
+            # Area samples (photographs, video) take the preconditioned back-projection.
+            area = replace(frame, meta=replace(frame.meta, flags=FrameFlags.AREA_SAMPLES))
+            temporal.upscale(area, display)
 
 
 def _warm_mpe() -> None:

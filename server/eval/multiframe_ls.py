@@ -46,6 +46,7 @@ from server.frames.frame import Size
 from server.ops.progress import elapsed_and_left, progress
 from upscalers import metrics
 from upscalers import temporal_ops as ops
+from upscalers.temporal_params import TemporalParams
 
 F32 = npt.NDArray[np.float32]
 U8 = npt.NDArray[np.uint8]
@@ -145,9 +146,11 @@ def least_squares(
 
 def clamp_to_samples(image: F32, color: U8) -> F32:
     """Each display pixel within the 3x3 range of its render pixel's neighbourhood in
-    ``color``: temporal's output clamp (``TemporalUpscaler._finish_output``)."""
+    ``color``, widened as temporal widens it: temporal's output clamp
+    (``TemporalUpscaler._finish_output``)."""
     c = torch.from_numpy(color.astype(np.float32)).permute(2, 0, 1)
-    lo, hi = ops.render_range_at_display(c, image.shape[0], image.shape[1])
+    slack = TemporalParams().output_clamp_slack
+    lo, hi = ops.render_range_at_display(c, image.shape[0], image.shape[1], slack)
     x = torch.from_numpy(np.ascontiguousarray(image)).permute(2, 0, 1)
     return torch.minimum(torch.maximum(x, lo), hi).permute(1, 2, 0).numpy()
 

@@ -4,7 +4,9 @@ Held-out photographs (``real_content_sources``) become the sequences of
 ``real_content_sequences``; every method runs over each sequence frame by frame,
 interleaved like the game scenes, through one UpscalerHost per method (each
 sequence starts with RESET, so temporal history never crosses sequences).
-Temporal methods get the jittered frames, spatial ones the unjittered frames.
+Temporal methods get the jittered frames, spatial ones the unjittered frames; both
+are area averages of the photograph and flagged AREA_SAMPLES, as a user's photographs
+and video would be (``upscalers.upscale_sequence(..., area_samples=True)``).
 
 Per scale, method and kind the report keeps the mean PSNR over the measured
 frames and the photographs, the per-frame PSNR curve (mean over photographs),

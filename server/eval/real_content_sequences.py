@@ -187,7 +187,9 @@ def build_sequence(
         reset = t == 0 or t == cut
         prev = None if reset else cams[which][t - 1]
         motion = motion_field(view, prev, render, display)
-        flags = FrameFlags.RESET if reset else FrameFlags.NONE
+        # Every sample is the area average over its footprint (area_sample), as a
+        # photograph or video downscaled by area is: the frames say so.
+        flags = FrameFlags.AREA_SAMPLES | (FrameFlags.RESET if reset else FrameFlags.NONE)
         jitter = jitter_offset(t, phases)
         for target, jit in ((seq.jittered, jitter), (seq.unjittered, (0.0, 0.0))):
             target.append(

@@ -70,6 +70,12 @@ class FrameFlags(IntFlag):
     # has no depth, motion or jitter, and the slot's other planes are undefined. Only
     # spatial upscalers may run on such a frame and no frame can be predicted from it.
     COLOR_ONLY = 4
+    # Each colour sample is the average of the picture over its pixel's footprint (a
+    # photograph or a video downscaled by area, a supersampled render), not a point
+    # sample as a game's renderer takes. A temporal method may then undo that box
+    # faster (upscalers/temporal_params.py, ``area_precondition``): on point samples the
+    # same step follows their aliasing.
+    AREA_SAMPLES = 8
 
 
 @dataclass(frozen=True)

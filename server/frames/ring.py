@@ -50,7 +50,7 @@ Slot ``i`` starts at ``slots_offset + i * slot_stride``. Slot header, 1024 bytes
     16   u32       width   (of this frame; <= max_width)
     20   u32       height
     24   i64       frame_id
-    32   u32       flags (bit 0 RESET, bit 1 PREDICTED, bit 2 COLOR_ONLY; server/frames/frame.py)
+    32   u32       flags (bits: 0 RESET, 1 PREDICTED, 2 COLOR_ONLY, 3 AREA_SAMPLES; frame.py)
     36   f32[2]    jitter (render pixels)
     44   f32       near
     48   f32       far

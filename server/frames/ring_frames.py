@@ -21,7 +21,9 @@ from server.frames.ring import (
 SlotHeader = np.ndarray  # a 0-d structured view of SLOT_HEADER
 
 # Bits a producer may set that mean something here; unknown bits are dropped.
-KNOWN_FLAGS = FrameFlags.RESET | FrameFlags.PREDICTED | FrameFlags.COLOR_ONLY
+KNOWN_FLAGS = (
+    FrameFlags.RESET | FrameFlags.PREDICTED | FrameFlags.COLOR_ONLY | FrameFlags.AREA_SAMPLES
+)
 
 
 def write_meta(header: SlotHeader, meta: FrameMeta) -> None:
