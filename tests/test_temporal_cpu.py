@@ -140,13 +140,16 @@ def test_backends_agree_with_motion_off_screen() -> None:
     _run_both(frames, DISPLAY)
 
 
-def test_backends_agree_on_non_finite_inputs_and_history() -> None:
+@pytest.mark.parametrize("kind", [FrameFlags.NONE, FrameFlags.AREA_SAMPLES], ids=["point", "area"])
+def test_backends_agree_on_non_finite_inputs_and_history(kind: FrameFlags) -> None:
     """NaN and Inf in depth, motion and jitter, and planted into both backends' history
-    and weight: outputs stay finite and equal, and the next history is clean."""
+    and weight: outputs stay finite and equal, and the next history is clean (also on
+    area samples, whose preconditioning spreads a correction to the neighbours)."""
     ref, fast = _backends()
     rng = np.random.default_rng(0)
     for i in range(6):
         f = poisoned(pattern_frame(RENDER, i, motion=0.0 if i == 4 else 0.4), rng, i == 3)
+        f.meta = replace(f.meta, flags=f.meta.flags | kind)
         f.depth[1, :5] = -np.inf  # a fresh copy: poisoned copies the planes it changes
         a, b = ref.upscale(f, DISPLAY), fast.upscale(f, DISPLAY)
         _assert_agree(ref, fast, a, b)
