@@ -130,6 +130,23 @@ def test_meta_round_trip_preserves_camera(ring_name: str) -> None:
     ring.close()
 
 
+def test_every_known_flag_crosses_the_ring_and_unknown_bits_do_not(ring_name: str) -> None:
+    """The worker sees the flags the game set (AREA_SAMPLES changes what temporal does);
+    a bit this version does not know is dropped, not passed on as an invalid flag."""
+    ring = create_render_ring(ring_name, Size(8, 8))
+    lease = ring.acquire_write(1.0)
+    assert lease is not None
+    for flags in FrameFlags:
+        write_meta(lease.header, FrameMeta(frame_id=1, camera=Camera.identity(), flags=flags))
+        assert read_meta(lease.header).flags == flags
+    every = FrameFlags.RESET | FrameFlags.COLOR_ONLY | FrameFlags.AREA_SAMPLES
+    write_meta(lease.header, FrameMeta(frame_id=2, camera=Camera.identity(), flags=every))
+    lease.header["flags"] = int(every) | 1 << 20
+    assert read_meta(lease.header).flags == every
+    lease.abort()
+    ring.close()
+
+
 def test_realtime_overwrites_oldest_and_counts_drops(ring_name: str) -> None:
     ring = create_render_ring(ring_name, Size(16, 16), slots=3)
     for i in range(5):

@@ -311,7 +311,8 @@ class HostTemporal:
         if preconditions is not None:
             if self._correction is None:
                 self._correction = np.zeros_like(hist)
-            kernels.bp_correction_x(bx_i, bx_w, across, self._correction)
+            # The error back along the columns, whole: bp_back_x's sums, not yet added.
+            kernels.bp_predict_x(across, bx_i, bx_w, 0, _NO_TAPS, 0, 0, self._correction)
             kernels.precondition_add(
                 hist, self._correction, preconditions, steps, self._near_x, self._near_y, out
             )

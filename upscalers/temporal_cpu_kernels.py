@@ -1010,25 +1010,11 @@ def bp_back_x_2x(hist, bx_i, bx_w, offsets, reg_w, q_lo, q_hi, steps, near_y, ac
 
 
 # Preconditioned back-projection (frames flagged AREA_SAMPLES only, never the stream's
-# renders): the correction is summed whole into a buffer, filtered per axis by
+# renders): the correction is summed whole into a buffer (``bp_predict_x`` without a
+# pattern does bp_back_x's sums over the back tables), filtered per axis by
 # [-c, 1 + 2c, -c] (``back_projection.precondition_filter``, the same sums in the same
 # order) and added with the step. Generic tables at every scale: this path is for
 # photographs and video, where a millisecond matters less than on the game's frames.
-
-
-@njit(parallel=True, **_JIT)
-def bp_correction_x(bx_i, bx_w, across, corr):
-    """The error back along the columns (``bp_back_x``'s sums) into ``corr`` (3, H, W)."""
-    big_h, big_w = corr.shape[1], corr.shape[2]
-    n_bx = bx_i.shape[0]
-    for y in prange(big_h):
-        for c in range(3):
-            down, dst = across[c, y], corr[c, y]
-            dst[:] = F32(0.0)
-            for u in range(n_bx):
-                idx, wt = bx_i[u], bx_w[u]
-                for x in range(big_w):
-                    dst[x] += down[idx[x]] * wt[x]
 
 
 @njit(inline="always", **_JIT)
