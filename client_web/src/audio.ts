@@ -4,7 +4,7 @@
 //
 // Sync: a video frame with pts P can be shown at page time P + videoOffset (the
 // pipeline's latency, read from the last shown frames less what each waited for its
-// sound in VideoHold: their first quartile, see VIDEO_WINDOW). Audio with pts P is
+// sound in VideoHold: their first quartile, see video_follow.ts). Audio with pts P is
 // scheduled to be *heard* at the same P + videoOffset, which means holding it back:
 // the audio of a moment arrives
 // about when its frame does and video still has to decode and wait for a refresh. If
@@ -17,6 +17,7 @@ import { WORKLET_NAME, WORKLET_SOURCE } from "./audio_worklet";
 import { ArrivalBound } from "./arrival_bound";
 import { wallUs } from "./clock";
 import { Window } from "./stats";
+import { VideoFollow } from "./video_follow";
 
 export interface AudioRendition {
 	track: string;
@@ -41,25 +42,12 @@ const RESYNC_MS = 10;
 // later for good). So the mapping is redone when the relation has slipped this far
 // since it was made (also what a drifting device clock needs over hours).
 const CLOCK_SLIP_MS = 5;
-// A low quantile for the video: a viewer that joins first sees a burst of old frames
-// (the relay's cached group, decoded at once), whose large offsets must not hold the
-// sound back for as long as they are the median. And a window of 3 s (at 30 fps), not
-// 1: after a stall of a loaded page its frames were shown 250 ms late for about a
-// second, which moved the first quartile of 30 frames, so the sound jumped 245 ms
-// later to wait for pictures that were on time again by then (|A/V| 180 ms for 1.5 s);
-// the sound follows the picture only when most of 3 s of it is late.
-const VIDEO_WINDOW = 90; // presented frames the video offset is the first quartile of
-const VIDEO_QUANTILE = 25;
-// Video this much later than the sound could play is catching up (a viewer that joined
-// decodes the relay's cached group, up to a keyframe interval old, then skips ahead):
-// the sound does not wait for it, it plays as early as it can and syncs once it has.
-const MAX_HOLD_MS = 250;
 const MAX_RENDER_AHEAD_MS = 100;
 // Chunks (3 s) whose arrivals bound the target (ArrivalBound: their 95th percentile,
 // each stall of the page counted once). Why 3 s and not 1: a single stall of the page
 // (70 ms, 7 chunks late) was 7 % of a 1 s window, so it moved the target 70 ms later
-// for the next second (the picture, held at most MAX_HOLD_MS, cannot follow: A/V
-// offsets of -70 to -90 ms, the p95 of whole runs); the chunks of that stall had
+// for the next second (the picture, held at most VideoHold's MAX_HOLD_MS, cannot
+// follow: A/V offsets of -70 to -90 ms, the p95 of whole runs); the chunks of that stall had
 // missed their slots already, so the move bought nothing. Stalls that come every
 // second or two still move it.
 const LATE_WINDOW = 300;
@@ -82,7 +70,7 @@ export class AudioPlayer {
 	#targetMs?: number; // the target that offset was made for
 	#mappedRunning = false; // whether it was mapped with the running output clock
 	#mappedClockMs = 0; // the output clock's relation to page time it was mapped with
-	readonly #videoOffsets = new Window(VIDEO_WINDOW); // ms: present perf time - pts
+	readonly #video = new VideoFollow(); // how far the sound waits for the picture
 	readonly #arrivals = new ArrivalBound(LATE_WINDOW); // ms: arrival perf time + jitter - pts
 	readonly #renderAhead = new Window(LATE_WINDOW); // ms: see renderAheadMs
 	// Input pts in decode order. Why not AudioData.timestamp: Chromium's Opus decoder
@@ -201,14 +189,14 @@ export class AudioPlayer {
 		this.#node?.port.postMessage({ type: "reset" });
 		this.#arrivals.clear();
 		this.#renderAhead.clear();
-		this.#videoOffsets.clear();
+		this.#video.clear();
 		this.#targetMs = undefined;
 	}
 
 	/** The video frame with pts ``ptsUs`` was ready to show at page time ``perfMs``:
 	 * when it was shown, less what it waited for its sound (VideoHold.waitedMs). */
 	videoPresented(ptsUs: number, perfMs: number): void {
-		this.#videoOffsets.push(perfMs - ptsUs / 1000);
+		this.#video.presented(perfMs - ptsUs / 1000);
 	}
 
 	#decodedData(data: AudioData): void {
@@ -229,7 +217,7 @@ export class AudioPlayer {
 	/** The sync target's parts (ms, page time minus pts): for the stats and the tests. */
 	syncParts(): { videoMs?: number; arrivalMs?: number; aheadMs?: number; targetMs?: number; offsetFrames?: number; contextMs: number } {
 		return {
-			videoMs: this.#videoOffsets.percentile(VIDEO_QUANTILE),
+			videoMs: this.#video.videoMs,
 			arrivalMs: this.#arrivals.bound(),
 			aheadMs: this.#renderAhead.percentile(95),
 			targetMs: this.#targetMs,
@@ -256,9 +244,7 @@ export class AudioPlayer {
 		const arrival = this.#arrivals.bound();
 		if (arrival === undefined) return undefined;
 		const earliest = arrival + this.#renderAhead.percentile(95)!;
-		const video = this.#videoOffsets.percentile(VIDEO_QUANTILE);
-		if (video === undefined || video - earliest > MAX_HOLD_MS) return earliest;
-		return Math.max(video, earliest);
+		return this.#video.target(earliest, performance.now());
 	}
 
 	#retarget(): void {
