@@ -14,8 +14,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from server.session.feedback import FeedbackFields
+from server.session.link_estimate import LinkSample
 from server.session.link_probe import RETRY_S
-from server.session.rate_control import SAFE_FRACTION, RateController
+from server.session.rate_control import SAFE_FRACTION, RateController, near_above
 
 FPS = 30
 CEILING = 6_000_000
@@ -385,3 +386,70 @@ def test_a_viewer_that_fakes_its_probe_arrivals_gets_no_more_than_the_ceiling() 
         pts += 33_333
     assert rc.state.bitrate <= CEILING and peak_padding <= CEILING
     assert rc.probe.succeeded >= 1  # its lies were believed, within the ceiling
+
+
+class _ScriptedLink:
+    """A viewer's link estimate that says what the test wants (the reports' content
+    is then irrelevant): each report returns ``next``."""
+
+    def __init__(self, first: LinkSample) -> None:
+        self.next = first
+
+    def report(self, fields: FeedbackFields, log: object, now_s: float) -> LinkSample:
+        return self.next
+
+    def least_delay_ms(self, sent_from_ms: float, sent_to_ms: float) -> float | None:
+        return None  # no probe is ever proved
+
+
+def _sample(delivered_bps: float, queue_ms: float = 5.0, loss: float = 0.0) -> LinkSample:
+    rising = queue_ms > 50
+    return LinkSample(
+        delivered_bps=delivered_bps,
+        queue_ms=queue_ms,
+        queue_rising=rising,
+        stretch=1.2 if rising else 1.0,
+        loss=loss,
+        skipped=0,
+        freezes=0,
+    )
+
+
+def test_losses_right_after_a_queue_keep_where_the_link_gave_out() -> None:
+    # The real stack's order on lte without its loss: a queue of 200 ms with 3.78
+    # Mbit/s arriving (a cut, and that is where the link gave out), then 0.75 s later
+    # the frames that queue held lost (a second cut). The encoder makes 65 % of its
+    # rate. Before, the second cut erased the first one's point and the quick climb
+    # went from 1.99 to 5.8 Mbit/s within 8 s on the 4 Mbit/s link; now the climb is
+    # the careful one near 3.8 for the congestion memory.
+    rc = RateController(CEILING, FLOOR)
+    rc.input_seen("player", 0.0)
+    link = _ScriptedLink(_sample(3.0e6))
+    rc._players["player"].estimate = link  # type: ignore[assignment]
+    rates: list[tuple[float, int]] = []
+
+    def report(sample: LinkSample, now_s: float) -> None:
+        link.next = sample
+        rc.feedback("player", FeedbackFields(player=True), now_s)
+        rc.update(now_s)
+        rates.append((now_s, rc.state.bitrate))
+
+    now = 0.0
+    while now < 2.0:
+        report(_sample(0.65 * rc.state.bitrate), now)
+        now += 0.25
+    report(_sample(3.78e6, queue_ms=200.0), now)
+    report(_sample(3.78e6, queue_ms=200.0), now + 0.25)
+    queue_cut = rc.state.bitrate
+    assert queue_cut < 3.78e6, rates
+    report(_sample(3.76e6, queue_ms=0.0, loss=0.76), now + 1.0)
+    loss_cut = rc.state.bitrate
+    assert loss_cut < queue_cut, rates
+    end = now + 7.0
+    now += 1.25
+    while now < end:
+        report(_sample(0.65 * rc.state.bitrate), now)
+        now += 0.25
+    climbed = max(rate for t, rate in rates if t > 3.0)
+    assert climbed <= 3.78e6 + near_above(3.78e6), rates
+    assert climbed > 3.0e6, rates  # careful is not stuck: up to where it gave out
