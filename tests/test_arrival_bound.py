@@ -8,20 +8,13 @@ tests/e2e/test_audio_e2e.py: |A/V| 100-150 ms on a freshly started page)."""
 
 from __future__ import annotations
 
-import os
-import shutil
 from pathlib import Path
 
-import pytest
-
-from tests.test_encode_catalog import CLIENT_MODULES, run_in_node
+from tests.test_encode_catalog import NEEDS_NODE, run_in_node
 
 CLIENT = Path(__file__).resolve().parents[1] / "client_web"
 
-pytestmark = pytest.mark.skipif(
-    not os.environ.get("CI") and (not CLIENT_MODULES.exists() or shutil.which("node") is None),
-    reason="needs node and client_web/node_modules (npm ci in client_web)",
-)
+pytestmark = NEEDS_NODE
 
 
 def test_arrival_bound_ignores_one_stall_and_covers_repeated_ones(tmp_path: Path) -> None:

@@ -38,6 +38,11 @@ HANG_MISSING = not os.environ.get("CI") and (
     not HANG_VIDEO_JS.exists() or shutil.which("node") is None
 )
 HANG_REASON = "needs node and client_web/node_modules (npm ci in client_web)"
+# The client's own modules bundled and run in node (run_in_node): the same rule.
+NEEDS_NODE = pytest.mark.skipif(
+    not os.environ.get("CI") and (not CLIENT_MODULES.exists() or shutil.which("node") is None),
+    reason=HANG_REASON,
+)
 
 
 def emitted() -> dict[str, Any]:

@@ -9,20 +9,13 @@ e2e join test's 0.4 s of silence in fresh CI runs)."""
 
 from __future__ import annotations
 
-import os
-import shutil
 from pathlib import Path
 
-import pytest
-
-from tests.test_encode_catalog import CLIENT_MODULES, run_in_node
+from tests.test_encode_catalog import NEEDS_NODE, run_in_node
 
 CLIENT = Path(__file__).resolve().parents[1] / "client_web"
 
-pytestmark = pytest.mark.skipif(
-    not os.environ.get("CI") and (not CLIENT_MODULES.exists() or shutil.which("node") is None),
-    reason="needs node and client_web/node_modules (npm ci in client_web)",
-)
+pytestmark = NEEDS_NODE
 
 
 def test_a_joining_viewer_hears_one_move_of_the_sound_not_one_per_catch_up_frame(
