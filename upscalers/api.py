@@ -69,6 +69,7 @@ def upscale_sequence(
     jitter: Iterable[tuple[float, float]] | None = None,
     depth: Iterable[npt.NDArray[Any]] | None = None,
     area_samples: bool = False,
+    detect_cuts: bool = True,
     **options: Any,
 ) -> Iterator[U8Array]:
     """Frames of a video in order, upscaled one by one: yields a uint8 (H', W', 3) each.
@@ -96,6 +97,11 @@ def upscale_sequence(
     photograph with fine texture, +0.9 dB under a still camera); on point samples the
     same step follows their aliasing, so say True only when it is so.
 
+    ``detect_cuts``: a temporal method starts its history afresh where the picture
+    changes as a whole (a scene cut, ``upscalers/cut_detector.py``): without that it
+    blends the picture before the cut into the frames after it. False trusts the
+    sequence to have no cuts.
+
     Spatial methods upscale each frame alone. Non-finite depth or motion is replaced as in
     the stream (``upscalers/sanitize.py``). The method and ``size_or_scale`` are
     checked at the call; each frame when its turn comes (errors name the frame).
@@ -103,7 +109,7 @@ def upscale_sequence(
     target = parse_size_or_scale(size_or_scale)
     # Built now, so that an unknown method or option fails at the call, not at the
     # first next(); the size is set per frame once the frames' size is known.
-    host = UpscalerHost(method, Size(1, 1), options)
+    host = UpscalerHost(method, Size(1, 1), options, detect_cuts=detect_cuts)
     flags = FrameFlags.AREA_SAMPLES if area_samples else FrameFlags.NONE
     return _sequence(host, frames, target, motion, jitter, depth, flags)
 

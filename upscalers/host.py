@@ -19,6 +19,7 @@ from server.frames.frame import FrameFlags, RenderFrame, Size
 from upscalers import registry
 from upscalers.base import Upscaler
 from upscalers.cache.policies import make_policy
+from upscalers.cut_detector import CutDetector
 from upscalers.sanitize import SanitizeReport, sanitize_frame
 
 log = logging.getLogger(__name__)
@@ -51,6 +52,7 @@ class UpscalerHost:
         *,
         compile: bool = False,
         cache_policy: str | None = None,
+        detect_cuts: bool = True,
     ) -> None:
         # compile=True: every method that has a compiled path (the start one and any
         # switched to) uses it; the others run as usual.
@@ -72,6 +74,10 @@ class UpscalerHost:
         self._last_warning = 0.0
         # Set by the last frame: its source gave colour only (no depth, motion, jitter).
         self.color_only = False
+        # Scene cuts the frames do not flag, found before a temporal method blends
+        # across them (upscalers/cut_detector.py); None: trust the RESET flag alone.
+        self._cuts = CutDetector() if detect_cuts else None
+        self.cuts_found = 0
 
     @property
     def name(self) -> str:
@@ -91,6 +97,8 @@ class UpscalerHost:
         log.info("upscaler switched: %s -> %s", self.upscaler.name, name)
         self.upscaler = new
         self._last_input_size = None
+        if self._cuts is not None:
+            self._cuts.reset()  # the last frame it saw may be long ago
 
     def _create(self, name: str, options: Mapping[str, Any] | None = None) -> Upscaler:
         opts = dict(options or {})
@@ -130,10 +138,29 @@ class UpscalerHost:
             self._note_sanitized(frame.meta.frame_id, report)
         if frame.meta.flags & FrameFlags.PREDICTED and self.upscaler.temporal:
             return self._upscale_predicted_stand_in(frame)
-        if frame.meta.flags & FrameFlags.RESET or frame.size != self._last_input_size:
+        # The detector sees every frame first (it keeps the last one to compare with).
+        cut = self._unflagged_cut(frame)
+        if cut or frame.meta.flags & FrameFlags.RESET or frame.size != self._last_input_size:
             self.upscaler.reset()
             self._last_input_size = frame.size
         return self.upscaler.upscale(frame, self.display_size)
+
+    def _unflagged_cut(self, frame: RenderFrame) -> bool:
+        """Whether a temporal method is about to blend across a scene cut that the frame
+        does not flag (a spatial method keeps no history: nothing to look for)."""
+        if self._cuts is None or not self.upscaler.temporal:
+            return False
+        if not self._cuts.observe(frame) or frame.meta.flags & FrameFlags.RESET:
+            return False
+        self.cuts_found += 1
+        log.info(
+            "frame %d: scene cut without the RESET flag (%.0f %% of the picture changed "
+            "past its neighbourhood); %s starts its history afresh",
+            frame.meta.frame_id,
+            100.0 * (self._cuts.last_changed or 0.0),
+            self.upscaler.name,
+        )
+        return True
 
     def _upscale_color_only(self, frame: RenderFrame) -> torch.Tensor:
         """A colour-only frame's depth and motion planes are undefined: nothing reads
