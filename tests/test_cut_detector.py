@@ -6,11 +6,11 @@ import dataclasses
 
 import numpy as np
 import pytest
-from scipy.ndimage import gaussian_filter
 
 from server.eval.real_content_sequences import build_sequence
 from server.frames.frame import Camera, FrameFlags, FrameMeta, RenderFrame, Size
 from server.game.render.transforms import jitter_offset
+from tests.test_real_content import _photo
 from upscalers import metrics
 from upscalers.api import upscale_sequence
 from upscalers.cut_detector import CutDetector
@@ -19,13 +19,7 @@ from upscalers.output import to_uint8
 
 
 def _picture(seed: int, h: int = 270, w: int = 480) -> np.ndarray:
-    """A photograph-like RGB picture: smooth shapes, fine texture and hard edges."""
-    rng = np.random.default_rng(seed)
-    smooth = gaussian_filter(rng.random((h, w, 3)), (12, 12, 0))
-    fine = gaussian_filter(rng.random((h, w, 3)), (1, 1, 0))
-    edges = (gaussian_filter(rng.random((h, w)), 20) > 0.5)[..., None] * 0.4
-    img = (smooth - smooth.min()) / np.ptp(smooth) * 0.5 + fine * 0.3 + edges
-    return np.clip(img / img.max() * 255.0, 0, 255).astype(np.uint8)
+    return _photo(seed, (h, w))
 
 
 def _frame(color: np.ndarray, motion: np.ndarray | None = None, index: int = 0) -> RenderFrame:

@@ -227,9 +227,11 @@ class TemporalUpscaler(Upscaler):
             # Non-finite history (never written by this code) is dropped before the
             # Catmull-Rom correction can spread it; the clamp then moves it into the box.
             torch.nan_to_num_(prev, nan=0.0, posinf=0.0, neginf=0.0)
-            if scale > 1 and p.history_catmull_rom:
+            if p.history_catmull_rom and scale > 1:
                 for plane in prev:
                     self._sharpen_fetch(plane, mv, scale)
+            elif p.history_catmull_rom:
+                self._sharpen_fetch_generic(prev, inputs.motion, render, display)
         prev.clamp_(inputs.lo, inputs.hi)
         denom = inputs.prev_weight + inputs.weight
         alpha = torch.div(inputs.weight, denom, out=denom)
@@ -429,6 +431,31 @@ class TemporalUpscaler(Upscaler):
         luma.mul_(centre)
         luma.addcmul_(nx, c[0])
         luma.addcmul_(ny, c[1])
+
+    def _sharpen_fetch_generic(
+        self, prev: torch.Tensor, motion: torch.Tensor, render: Size, display: Size
+    ) -> None:
+        """``_sharpen_fetch`` for any other scale: ``prev`` (3, 1, 1, H, W) fetched at
+        display size, ``motion`` (1, 1, H, W, 2) the render motion of each display pixel;
+        its fraction in display pixels is the motion times display over render size per
+        axis (1.5 at 1.5x); the gain is ``history_sharpen_gain_fractional``."""
+        scales = torch.tensor(
+            [display.width / render.width, display.height / render.height],
+            device=prev.device,
+            dtype=self.dtype,
+        )
+        frac = motion[0, 0].mul(scales).permute(2, 0, 1)
+        frac.sub_(frac.floor())
+        gain = self.params.history_sharpen_gain_fractional
+        c = frac.mul(frac.neg().add_(1.0)).mul_(-0.5 * gain)
+        centre = c.sum(0).mul_(-2.0).add_(1.0)
+        for plane in prev[:, 0, 0]:
+            padded = F.pad(plane[None, None], (1, 1, 1, 1), mode="replicate")[0, 0]
+            nx = padded[1:-1, :-2] + padded[1:-1, 2:]
+            ny = padded[:-2, 1:-1] + padded[2:, 1:-1]
+            plane.mul_(centre)
+            plane.addcmul_(nx, c[0])
+            plane.addcmul_(ny, c[1])
 
     def _neighbour_buffers(self, shape: torch.Size) -> tuple[torch.Tensor, torch.Tensor]:
         bufs = self._neighbour_bufs

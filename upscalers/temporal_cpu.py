@@ -177,6 +177,8 @@ class HostTemporal:
         # Any other scale: the render pixel whose box, weight and motion each display pixel takes.
         self._near_x = ops.nearest_index(big_w, w, _CPU).numpy()
         self._near_y = ops.nearest_index(big_h, h, _CPU).numpy()
+        # and the motion's scale to display pixels per axis, as ``_sharpen_fetch_generic``.
+        self._display_per_render = (np.float32(big_w / w), np.float32(big_h / h))
         self._steps = np.empty((h, w), np.float32)  # back-projection's step per render pixel
         self._preconditions = np.empty((h, w), np.float32)  # and its preconditioning
         # The whole correction, for area samples' preconditioning (made at first need).
@@ -395,7 +397,9 @@ class HostTemporal:
             kernels.display_generic(
                 b.ycc, b.lo, b.hi, b.prev_weight, b.dilated, self._near_x, self._near_y,
                 phase.grid_x, phase.grid_y, phase.weight_x, phase.weight_y, self._grid_x,
-                self._grid_y, step_x, step_y, mode, self._history, self._spare, out,
+                self._grid_y, step_x, step_y, mode, self.params.history_catmull_rom,
+                float(self.params.history_sharpen_gain_fractional), *self._display_per_render,
+                self._history, self._spare, out,
             )  # fmt: skip
 
     def _inputs(self, frame: RenderFrame) -> tuple[npt.NDArray[Any], ...]:

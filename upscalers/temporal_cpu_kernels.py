@@ -173,9 +173,13 @@ def _catmull_rom(value, left, right, up, down, mx, my, scale, k_cr):
     """``_sharpen_fetch`` at one pixel: per axis c = -gain t (1 - t) / 2 of the motion's
     sub-pixel fraction t, then value (1 - 2 cx - 2 cy) + cx (left + right) + cy (up +
     down), in the torch path's order."""
+    return _catmull_rom_xy(value, left, right, up, down, mx * scale, my * scale, k_cr)
+
+
+@njit(inline="always", **_JIT)
+def _catmull_rom_xy(value, left, right, up, down, tx, ty, k_cr):
+    """``_catmull_rom`` of a motion already in display pixels per axis (tx, ty)."""
     one = F32(1.0)
-    tx = mx * scale
-    ty = my * scale
     tx = tx - np.floor(tx)
     ty = ty - np.floor(ty)
     cx = tx * (one - tx) * k_cr
@@ -753,16 +757,18 @@ def display_blocked(
 @njit(parallel=True, **_JIT)
 def display_generic(
     ycc, lo, hi, prev_weight, mvd, near_x, near_y, grid_x, grid_y, weight_x, weight_y, gxb, gyb,
-    step_x, step_y, prev_mode, hist, hist_new, out,
+    step_x, step_y, prev_mode, catmull_rom, sharpen_gain, scale_x, scale_y, hist, hist_new, out,
 ):  # fmt: skip
     """The display stage of any other scale (``TemporalUpscaler._generic_inputs``).
 
     Display pixel (Y, X) reconstructs the padded ``ycc`` at normalized (grid_x[X],
     grid_y[Y]) (``ops.jittered_grid``, bilinear, border padding), takes box, weight
     and motion of render pixel (near_y[Y], near_x[X]) (``ops.nearest_index``) and the
-    sample weight weight_y[Y] weight_x[X]; its history as in ``display_blocked``
-    without the Catmull-Rom correction (the torch path has none here either). Render
-    values are picked per display pixel, so less of this vectorizes.
+    sample weight weight_y[Y] weight_x[X]; its history as in ``display_blocked``, the
+    Catmull-Rom correction's fraction from the motion in display pixels (render motion
+    times ``scale_x`` / ``scale_y``, display over render size per axis), its rows above
+    and below from a ring of three fetched rows. Render values are picked per display
+    pixel, so less of this vectorizes.
     """
     _, big_h, big_w = hist.shape
     h, w = prev_weight.shape
@@ -770,30 +776,43 @@ def display_generic(
     half_rw, half_rh = F32(w) * F32(0.5), F32(h) * F32(0.5)
     one = F32(1.0)
     no_offset = np.zeros(big_w, F32)
+    fetch = prev_mode == PREV_FETCH
+    cr = fetch and catmull_rom
+    k_cr = F32(-0.5 * sharpen_gain)
+    # With Catmull-Rom, row y is blended once row y + 1 is fetched.
+    lag = 1 if cr else 0
     for blk in prange((big_h + DISPLAY_BLOCK - 1) // DISPLAY_BLOCK):
+        y_start = blk * DISPLAY_BLOCK
+        y_end = min(big_h, y_start + DISPLAY_BLOCK)
+        ring = np.empty((3, 3, big_w + 2), F32)  # history rows, row r in slot r % 3
         corners = np.empty((7, big_w), F32)
         runs = np.empty(run_words(big_w) * 8, np.uint8)
         mv_up = np.empty((2, big_w), F32)
-        fetched = np.empty((3, big_w + 2), F32)
         new = np.empty((3, 1, big_w), F32)
-        for y in range(blk * DISPLAY_BLOCK, min(big_h, (blk + 1) * DISPLAY_BLOCK)):
-            i = near_y[y]
-            if prev_mode == PREV_FETCH:
+        for r in range(y_start - lag, y_end + lag):
+            if fetch:
+                rr = _clampi(r, big_h)
+                i_r = near_y[rr]
                 for c in range(2):
-                    src, dst = mvd[c, i], mv_up[c]
+                    src, dst = mvd[c, i_r], mv_up[c]
                     for x in range(big_w):
                         dst[x] = src[near_x[x]]
                 _fetch_row(
-                    hist_flat, big_w, big_h, mv_up, gxb, no_offset, gyb[y], F32(0.0), step_x,
-                    step_y, corners, runs, fetched,
+                    hist_flat, big_w, big_h, mv_up, gxb, no_offset, gyb[rr], F32(0.0), step_x,
+                    step_y, corners, runs, ring[r % 3],
                 )  # fmt: skip
-            elif prev_mode == PREV_IN_PLACE:
+            y = r - lag
+            if y < y_start:
+                continue
+            fetched, up, down = ring[y % 3], ring[(y - 1) % 3], ring[(y + 1) % 3]
+            if prev_mode == PREV_IN_PLACE:
                 _history_row(hist, y, fetched)
+            i = near_y[y]
             v0, fy = _axis_position(grid_y[y], half_rh, F32(h - 1))
             y0 = np.int64(v0)
             y1 = min(y0 + 1, h - 1)
             s = one - fy
-            pw_i = prev_weight[i]
+            pw_i, mvx_i, mvy_i = prev_weight[i], mvd[0, i], mvd[1, i]
             for x in range(big_w):
                 j = near_x[x]
                 u0, fx = _axis_position(grid_x[x], half_rw, F32(w - 1))
@@ -802,11 +821,20 @@ def display_generic(
                 nw, ne, sw, se = s * e, s * fx, fy * e, fy * fx
                 wt = weight_y[y] * weight_x[x]
                 alpha = wt / (pw_i[j] + wt)
+                tx, ty = mvx_i[j] * scale_x, mvy_i[j] * scale_y
                 for c in range(3):
                     cur = fma32(ycc[c, y0, x0 + 1], ne, ycc[c, y0, x0] * nw)
                     cur = fma32(ycc[c, y1, x0], sw, cur)
                     cur = fma32(ycc[c, y1, x0 + 1], se, cur)
-                    prev = cur if prev_mode == PREV_CURRENT else fetched[c, x + 1]
+                    if prev_mode == PREV_CURRENT:
+                        prev = cur
+                    elif cr:
+                        prev = _catmull_rom_xy(
+                            fetched[c, x + 1], fetched[c, x], fetched[c, x + 2], up[c, x + 1],
+                            down[c, x + 1], tx, ty, k_cr,
+                        )  # fmt: skip
+                    else:
+                        prev = fetched[c, x + 1]
                     new[c, 0, x] = _blend(prev, cur, lo[c, i, j], hi[c, i, j], alpha)
             _store_row(new, hist_new, y)
             _rgb_row(hist_new, y, out)

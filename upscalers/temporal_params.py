@@ -60,6 +60,15 @@ class TemporalParams:
     # scene below -0.07); 1.5 gained more on photographs but cost thin_detail 0.19 dB.
     history_catmull_rom: bool = True
     history_sharpen_gain: float = 1.3
+    # The gain at a scale that is not a whole number (1.5x, 1.7x), where the history is
+    # fetched at display size pixel by pixel (``_sharpen_fetch_generic``). Before it had
+    # a correction at all, a pan over photographs at 1.5x sat 1 dB under what the same
+    # fetch keeps at 2x. 1.0, chosen on 6 training photographs (2 per source, 480x270,
+    # 1.5x, mean of frames 8-31, against no correction): pans +1.05 dB, zooms +0.36
+    # (1.3: +0.96 / +0.08); the game's scenes at 1.5x (640x360): fast_yaw, dolly and
+    # scene_cut +0.24 to +0.25, slow_pan +0.16, default +0.13, moving_objects +0.02,
+    # static 0, thin_detail -0.08 (1.3: -0.15).
+    history_sharpen_gain_fractional: float = 1.0
     # A reset (first frame, scene cut) starts the history from EASU (FSR 1) of the frame's
     # own samples at their jittered positions, worth this much accumulated sample weight
     # in that frame's blend: the first frames after a cut are as sharp as a spatial
