@@ -1,8 +1,8 @@
 """UpscalerHost: runs the configured upscaler on frames, in or out of process.
 
 It owns what a method should not have to think about: sanitizing input,
-resetting history on RESET frames and size changes, switching methods at run
-time. The worker process and in-process callers use this same class, which is
+resetting history on RESET frames, size changes and scene cuts the frames do not
+flag (``cut_detector.py``), switching methods at run time. The worker process and in-process callers use this same class, which is
 why the decoupled path gives the same bits as a direct call.
 """
 
