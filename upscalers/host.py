@@ -2,8 +2,9 @@
 
 It owns what a method should not have to think about: sanitizing input,
 resetting history on RESET frames, size changes and scene cuts the frames do not
-flag (``cut_detector.py``), switching methods at run time. The worker process and in-process callers use this same class, which is
-why the decoupled path gives the same bits as a direct call.
+flag (``cut_detector.py``), switching methods at run time. The worker process
+and in-process callers use this same class, which is why the decoupled path gives
+the same bits as a direct call.
 """
 
 from __future__ import annotations
