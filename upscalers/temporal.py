@@ -248,9 +248,13 @@ class TemporalUpscaler(Upscaler):
             work = history[0] if history.dtype == torch.float32 else history[0].float()
             taps = self._back_taps(render, display, jit)
             area = bool(frame.meta.flags & FrameFlags.AREA_SAMPLES)
-            moving_step = p.moving_step(ops.axis_scale(render, display))
-            steps = self._moving_map(step, moving_step, mv, display)
-            pre = self._moving_map(p.precondition(area), p.precondition(area, True), mv, display)
+            factor = ops.axis_scale(render, display)
+            steps = self._moving_map(step, p.moving_step(factor), mv, display)
+            still_c, moving_c = (
+                p.precondition(area, False, factor),
+                p.precondition(area, True, factor),
+            )
+            pre = self._moving_map(still_c, moving_c, mv, display)
             back_project(work, raw, *taps, steps, pre)
             if work.data_ptr() != history.data_ptr():
                 history[0].copy_(work)

@@ -249,7 +249,9 @@ class HostTemporal:
             reg = cached_regular_2x(w, big_w, jit[0]) if self.scale == 2 else None
             steps = self._moving_map(self._steps, p.back_projection, self._moving_step, any_moving)
             area = bool(frame.meta.flags & FrameFlags.AREA_SAMPLES)
-            still_c, moving_c = p.precondition(area), p.precondition(area, True)
+            factor = ops.axis_scale(self.render, self.display)
+            still_c = p.precondition(area, False, factor)
+            moving_c = p.precondition(area, True, factor)
             pre = None
             if still_c > 0.0 or moving_c > 0.0:  # as the torch path: either one is enough
                 pre = self._moving_map(self._preconditions, still_c, moving_c, any_moving)
