@@ -16,9 +16,7 @@ same runs gave, tone seeds 7 / 11: 32.1 / 29.0 dB median tone-to-rest (worst win
 from __future__ import annotations
 
 import json
-import os
 import random
-import shutil
 import subprocess
 from collections.abc import Callable, Iterable
 from pathlib import Path
@@ -30,16 +28,13 @@ import pytest
 from av.audio.codeccontext import AudioCodecContext
 
 from server.media.audio_encode import FRAME_SAMPLES, SAMPLE_RATE, OpusEncoder
+from tests.test_encode_catalog import ESBUILD, NEEDS_NODE
 
 F32 = npt.NDArray[np.float32]
 CLIENT = Path(__file__).resolve().parents[1] / "client_web"
-ESBUILD = CLIENT / "node_modules" / ".bin" / "esbuild"
 # ./dev test installs client_web's npm packages (with node) before the tests: in CI a
 # missing piece is a broken setup and must fail, not skip.
-pytestmark = pytest.mark.skipif(
-    not os.environ.get("CI") and (not ESBUILD.exists() or shutil.which("node") is None),
-    reason="needs node and client_web/node_modules (npm ci in client_web)",
-)
+pytestmark = NEEDS_NODE
 
 # The worklet's constants at 48 kHz (audio_worklet.ts), for the checks' windows.
 HOLD = 480  # concealment at full level, 10 ms

@@ -38,9 +38,11 @@ HANG_MISSING = not os.environ.get("CI") and (
     not HANG_VIDEO_JS.exists() or shutil.which("node") is None
 )
 HANG_REASON = "needs node and client_web/node_modules (npm ci in client_web)"
-# The client's own modules bundled and run in node (run_in_node): the same rule.
+# The client's own modules bundled with its esbuild and run in node (run_in_node): the
+# same rule.
+ESBUILD = CLIENT_MODULES / ".bin" / "esbuild"
 NEEDS_NODE = pytest.mark.skipif(
-    not os.environ.get("CI") and (not CLIENT_MODULES.exists() or shutil.which("node") is None),
+    not os.environ.get("CI") and (not ESBUILD.exists() or shutil.which("node") is None),
     reason=HANG_REASON,
 )
 
@@ -103,7 +105,7 @@ def run_in_node(tmp_path: Path, entry: Path, *args: Path | str) -> Any:
     client's esbuild, run it on ``args`` and return the JSON it prints."""
     bundle = tmp_path / "bundle.mjs"
     subprocess.run(
-        [str(CLIENT_MODULES / ".bin" / "esbuild"), str(entry), "--bundle", "--platform=node",
+        [str(ESBUILD), str(entry), "--bundle", "--platform=node",
          "--format=esm", f"--outfile={bundle}", "--log-level=error"],
         check=True, env={**os.environ, "NODE_PATH": str(CLIENT_MODULES)},
     )  # fmt: skip

@@ -140,7 +140,8 @@ class HostTemporal:
         self.display = display
         self.scale = scale
         # Back-projection's step on moving pixels: fixed by the geometry.
-        self._moving_step = params.moving_step(ops.axis_scale(render, display))
+        self._factor = ops.axis_scale(render, display)  # the upscaling factor
+        self._moving_step = params.moving_step(self._factor)
         w, h = render
         big_w, big_h = display
         self._buf = _RenderBuffers.allocate(w, h)
@@ -249,9 +250,8 @@ class HostTemporal:
             reg = cached_regular_2x(w, big_w, jit[0]) if self.scale == 2 else None
             steps = self._moving_map(self._steps, p.back_projection, self._moving_step, any_moving)
             area = bool(frame.meta.flags & FrameFlags.AREA_SAMPLES)
-            factor = ops.axis_scale(self.render, self.display)
-            still_c = p.precondition(area, False, factor)
-            moving_c = p.precondition(area, True, factor)
+            still_c = p.precondition(area, False, self._factor)
+            moving_c = p.precondition(area, True, self._factor)
             pre = None
             if still_c > 0.0 or moving_c > 0.0:  # as the torch path: either one is enough
                 pre = self._moving_map(self._preconditions, still_c, moving_c, any_moving)
