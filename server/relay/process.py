@@ -16,6 +16,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from server.ops import orphan_guard
+
 READY_TIMEOUT_S = 30.0
 
 
@@ -63,7 +65,10 @@ class RelayProcess:
             args += ["--auth-key", str(self.auth_key)]
             args.append("--public-viewers" if self.public_viewers else "--no-public-viewers")
         args += self.extra_args
+        if self.proc is not None:  # a restart: the dead one is not to be ended
+            orphan_guard.forget_process(self.proc.pid)
         self.proc = subprocess.Popen(args)
+        orphan_guard.watch_process(self.proc.pid)  # ended should this process die first
         deadline = time.monotonic() + timeout_s
         while True:
             if ready.exists():
@@ -97,6 +102,8 @@ class RelayProcess:
             except subprocess.TimeoutExpired:
                 proc.kill()
                 proc.wait(5)
+        if proc is not None:
+            orphan_guard.forget_process(proc.pid)
         with contextlib.suppress(OSError):
             (self._dir / "ready").unlink(missing_ok=True)
             self._dir.rmdir()

@@ -5,7 +5,8 @@ Each session process runs in its own process group, so when one is killed
 game and worker it left behind and removes its rings and sockets, then starts
 it again after a backoff (1 s, doubling to 30 s; back to 1 s once a start
 stayed up for a minute). The other sessions share nothing with it but the
-relay, so they never notice.
+relay, so they never notice. Should the supervisor itself die, SIGKILL included, its
+reaper (server/ops/orphan_guard.py) ends every session's group and removes its files.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from server.ops import orphan_guard
 from server.serve.session_process import SOURCE_ENDED_CODE
 from server.serve.spec import SessionSpec
 from server.serve.tokens import TokenMinter, no_token
@@ -111,10 +113,15 @@ class Supervisor:
         spec_path.write_text(spec.model_dump_json())
         s.status_path.unlink(missing_ok=True)
         # Its own process group: the game and worker it starts go with it (see _reap).
+        # Should the supervisor die without stopping it (SIGKILL), its reaper ends the
+        # group and removes the files (the session's own reaper does too).
+        for path in session_files(s.name):
+            orphan_guard.watch_path(path)
         s.proc = subprocess.Popen(
             [sys.executable, "-m", "server.serve.session_process", str(spec_path)],
             start_new_session=True,
         )
+        orphan_guard.watch_process(s.proc.pid, group=True)
         s.started_at = time.monotonic()
         s.next_start_at = None
         log.info("session %d (%s): pid %d", s.index, s.broadcast, s.proc.pid)
@@ -162,8 +169,10 @@ class Supervisor:
         assert s.proc is not None
         with contextlib.suppress(ProcessLookupError, PermissionError):
             os.killpg(s.proc.pid, signal.SIGKILL)
+        orphan_guard.forget_process(s.proc.pid)
         for path in session_files(s.name):
             path.unlink(missing_ok=True)
+            orphan_guard.forget_path(path)
 
     def stop_all(self) -> None:
         running = [s for s in self.sessions if s.proc is not None and s.proc.poll() is None]

@@ -26,6 +26,7 @@ from server.config_types import CachePolicyName, PredictorName, SizeText, Upscal
 from server.frames.frame import Size
 from server.frames.ring import SHM_DIR, FrameRing
 from server.frames.ring_frames import create_display_ring, create_render_ring
+from server.ops import orphan_guard
 from server.session.gamepad_keys import GamepadKeyMap
 from upscalers import registry
 from upscalers.names import TEMPORAL_UPSCALERS, UPSCALERS
@@ -227,6 +228,10 @@ class LocalStack:
     def start(self) -> None:
         c = self.config
         display = Size.parse(c.display_size)
+        # Removed, and the children ended, by this process's reaper should it die
+        # without stop() (SIGKILL): registered before they exist.
+        for path in session_files(c.name):
+            orphan_guard.watch_path(path)
         # Ring R holds up to display size, so the render scale can change without
         # recreating it.
         self.ring_r = create_render_ring(self.ring_r_name, display, slots=c.slots)
@@ -238,6 +243,7 @@ class LocalStack:
         if self.game_metrics_port:
             game_args += ["--metrics-port", str(self.game_metrics_port)]
         self.game = subprocess.Popen(_cli(*game_args), env=_child_env())
+        orphan_guard.watch_process(self.game.pid)
         log.info("session %s: game pid %d, worker pid %d", c.name, self.game.pid, self.worker.pid)
 
     def _x11_args(self) -> list[str]:
@@ -264,7 +270,7 @@ class LocalStack:
 
     def _spawn_worker(self) -> subprocess.Popen[bytes]:
         c = self.config
-        return subprocess.Popen(
+        worker = subprocess.Popen(
             _cli(
                 "worker",
                 "--ring-in",
@@ -286,6 +292,8 @@ class LocalStack:
                 *(["--cache-policy", c.cache_policy] if c.cache_policy else []),
             )
         )
+        orphan_guard.watch_process(worker.pid)
+        return worker
 
     def remember_upscaler(self, name: str) -> None:
         """Record a run-time switch the worker accepted (see server/worker/control.py)."""
@@ -309,6 +317,7 @@ class LocalStack:
                 "worker exited (code %s); restarting (restart #%d)", code, self.worker_restarts
             )
             self.control_path.unlink(missing_ok=True)
+            orphan_guard.forget_process(self.worker.pid)
             self.worker = self._spawn_worker()
         if self.game is None or self.game.poll() is None:
             return
@@ -332,6 +341,7 @@ class LocalStack:
             except subprocess.TimeoutExpired:
                 proc.kill()
                 proc.wait(5)
+            orphan_guard.forget_process(proc.pid)
         for ring in (self.ring_r, self.ring_u):
             if ring is not None:
                 ring.unlink()
@@ -339,6 +349,8 @@ class LocalStack:
         self.ring_r = self.ring_u = None
         self.control_path.unlink(missing_ok=True)
         self.input_path.unlink(missing_ok=True)
+        for path in session_files(self.config.name):
+            orphan_guard.forget_path(path)
 
     def __enter__(self) -> LocalStack:
         self.start()

@@ -19,6 +19,8 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import IO
 
+from server.ops import orphan_guard
+
 log = logging.getLogger(__name__)
 
 MAX_LOG_LINE = 500
@@ -76,6 +78,9 @@ class Application:
         finally:
             if not isinstance(out, int):
                 out.close()
+        # A group of its own (above) that our signals miss: the reaper ends the group
+        # should this process die without stop().
+        orphan_guard.watch_process(process.pid, group=True)
         self = cls(process, name)
         if process.stdout is not None:
             self._reader = threading.Thread(
@@ -99,6 +104,7 @@ class Application:
             self._process.wait()
         # The leader may have obeyed while a child of it ignores SIGTERM: kill the rest.
         self._signal_group(signal.SIGKILL)
+        orphan_guard.forget_process(self.pid)
         if self._reader is not None:
             self._reader.join(1.0)
         return self._process.returncode

@@ -24,6 +24,7 @@ from Xlib import display as xdisplay
 from Xlib import error as xerror
 
 from server.game.x11.errors import DisplayError
+from server.ops import orphan_guard
 
 XVFB = "Xvfb"
 # GLX so Mesa's OpenGL (llvmpipe) games draw; MIT-SHM is Xvfb's default but say it,
@@ -83,6 +84,9 @@ class VirtualDisplay:
             raise DisplayError(f"cannot run {exe}: {exc}") from exc
         finally:
             os.close(write_fd)
+        # Its own session (above), so our group's signals miss it: the reaper ends it
+        # (SIGTERM: it removes its socket and lock) should this process die first.
+        orphan_guard.watch_process(process.pid, group=True)
         try:
             number = _read_display_number(read_fd, process, log, timeout_s)
         except BaseException:
@@ -178,14 +182,14 @@ def _read_display_number(
 
 
 def _end(process: subprocess.Popen[bytes], timeout_s: float) -> None:
-    if process.poll() is not None:
-        return
-    process.send_signal(signal.SIGTERM)
-    try:
-        process.wait(timeout_s)
-    except subprocess.TimeoutExpired:
-        process.kill()
-        process.wait()
+    if process.poll() is None:
+        process.send_signal(signal.SIGTERM)
+        try:
+            process.wait(timeout_s)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
+    orphan_guard.forget_process(process.pid)
 
 
 def _lock_owner(lock: Path) -> int | None:

@@ -18,6 +18,8 @@ import subprocess
 import time
 from pathlib import Path
 
+from server.ops import orphan_guard
+
 log = logging.getLogger(__name__)
 
 SINK = "upcast"
@@ -51,6 +53,7 @@ class PulseServer:
             )
             return None
         directory.mkdir(parents=True, exist_ok=True)
+        orphan_guard.watch_path(directory)  # removed (and the server ended) should we die
         env = {
             "HOME": str(directory),
             "XDG_RUNTIME_DIR": str(directory),
@@ -69,6 +72,7 @@ class PulseServer:
             start_new_session=True,
         )  # fmt: skip
         log_file.close()
+        orphan_guard.watch_process(process.pid, group=True)
         server = cls(process, directory)
         deadline = time.monotonic() + START_TIMEOUT_S
         while not server.socket.exists():
@@ -99,4 +103,6 @@ class PulseServer:
             except subprocess.TimeoutExpired:
                 self._process.kill()
                 self._process.wait(3)
+        orphan_guard.forget_process(self._process.pid)
         shutil.rmtree(self.directory, ignore_errors=True)
+        orphan_guard.forget_path(self.directory)
