@@ -16,6 +16,7 @@ import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -375,7 +376,12 @@ def test_a_restarted_worker_starts_with_the_method_switched_to(
     from server.stack.local import LocalStack, SessionConfig
 
     launched: list[list[str]] = []
-    monkeypatch.setattr(stack_module.subprocess, "Popen", lambda argv, **_: launched.append(argv))
+
+    def popen(argv: list[str], **_: object) -> SimpleNamespace:
+        launched.append(argv)
+        return SimpleNamespace(pid=0)  # no such process: the reaper is told nothing
+
+    monkeypatch.setattr(stack_module.subprocess, "Popen", popen)
     stack = LocalStack(SessionConfig(upscaler="bilinear", cache_policy="budget@41"))
     stack._spawn_worker()
     stack.remember_upscaler("unet_cached")  # a run-time switch the worker accepted

@@ -67,6 +67,8 @@ class OrphanGuard:
             raise ValueError(f"a watched path cannot hold a newline: {line!r}")
         data = (line + "\n").encode("utf-8", "surrogateescape")
         with self._lock:
+            if self._fd is None and line.startswith("-"):
+                return  # nothing was registered: no reaper to start for a forget
             fd = self._fd if self._fd is not None else self._start()
             if fd is None:
                 return
