@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import re
+from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 _BROADCAST = re.compile(r"^[A-Za-z0-9_.-]+(/[A-Za-z0-9_.-]+)*$")
 
@@ -40,6 +41,24 @@ class StreamConfig(BaseModel):
         description="refresh the picture in sweeps of intra blocks instead of periodic"
         " keyframes (no keyframe spikes on a narrow link); keyframes on demand",
     )
+    quality: Literal["auto", "fixed"] = Field(
+        default="auto",
+        description="auto: upscaler, render scale and frame generation follow the host's"
+        " load and the scene to hold the frame rate with the best picture; fixed: the"
+        " settings stay as started",
+    )
+    quality_preference: Literal["framerate", "resolution", "balanced"] = Field(
+        default="framerate",
+        description="what auto gives up first: the picture (framerate), never the starting"
+        " picture (resolution), or the rate down to 3/4 of the target first (balanced)",
+    )
+    min_scale: float = Field(default=1.0, ge=1.0, le=4.0, description="auto's lowest render scale")
+    max_scale: float = Field(default=4.0, ge=1.0, le=4.0, description="auto's highest render scale")
+    quality_methods: list[str] = Field(
+        default_factory=list,
+        max_length=16,
+        description="upscalers auto may choose from (empty: every method with figures)",
+    )
     metrics_port: int | None = Field(
         default=None,
         ge=0,
@@ -56,6 +75,12 @@ class StreamConfig(BaseModel):
                 " joined by '/', and not contain an 'input' segment (viewers publish there)"
             )
         return v
+
+    @model_validator(mode="after")
+    def _scale_bounds(self) -> StreamConfig:
+        if self.min_scale > self.max_scale:
+            raise ValueError(f"min_scale {self.min_scale:g} is above max_scale {self.max_scale:g}")
+        return self
 
     @property
     def bitrate_bps(self) -> int | None:

@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from server.commands.link_flags import add_link_arguments
+from server.commands.quality_flags import add_quality_arguments, quality_fields
 from server.ops.browser_paths import WEB_ROOT
 from server.stack.args import add_session_arguments, session_config_from
 
@@ -60,6 +61,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--bitrate-kbps", type=int, default=None, help="video bitrate")
     parser.add_argument("--gop-seconds", type=float, default=2.0, help="keyframe interval")
     add_link_arguments(parser)
+    add_quality_arguments(parser)
     parser.add_argument(
         "--auth-key", type=Path, default=None, help="JWK key that signs the sessions' tokens"
     )
@@ -115,6 +117,7 @@ def _sessions(args: argparse.Namespace) -> list[ServedSession] | None:
         gop_seconds=args.gop_seconds,
         rate_control=args.rate_control,
         intra_refresh=args.intra_refresh,
+        **quality_fields(args),
     )
     if base is None or stream is None:
         return None

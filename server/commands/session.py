@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from server.commands.link_flags import add_link_arguments
+from server.commands.quality_flags import add_quality_arguments, quality_fields
 
 if TYPE_CHECKING:
     from server.stream_config import StreamConfig
@@ -40,6 +41,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="publish the game's sound as an Opus track (default: on; --no-audio: video only)",
     )
     add_link_arguments(parser)
+    add_quality_arguments(parser)
     parser.add_argument("--game-input", type=Path, default=None, help="game input socket")
     parser.add_argument("--worker-control", type=Path, default=None, help="worker control socket")
     parser.add_argument("--metrics-port", type=int, default=0, help="Prometheus port (0 = off)")
@@ -74,6 +76,7 @@ def run(args: argparse.Namespace) -> int:
         audio=args.audio,
         rate_control=args.rate_control,
         intra_refresh=args.intra_refresh,
+        **quality_fields(args),
     )
     if stream is None:
         return 2
@@ -130,6 +133,11 @@ async def _main(args: argparse.Namespace, stream: StreamConfig) -> int:
             audio=stream.audio,
             rate_control=stream.rate_control,
             intra_refresh=stream.intra_refresh,
+            quality=stream.quality,
+            quality_preference=stream.quality_preference,
+            min_scale=stream.min_scale,
+            max_scale=stream.max_scale,
+            quality_methods=tuple(stream.quality_methods),
         ),
         ring,
         display,

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from server.commands.link_flags import add_link_arguments
+from server.commands.quality_flags import add_quality_arguments, quality_fields
 from server.ops.browser_paths import WEB_ROOT
 from server.stack.args import add_session_arguments, session_config_from
 
@@ -52,6 +53,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="publish the game's sound as an Opus track (default: on; --no-audio: video only)",
     )
     add_link_arguments(parser)
+    add_quality_arguments(parser)
     parser.add_argument(
         "--metrics-port",
         type=int,
@@ -125,6 +127,7 @@ def run(args: argparse.Namespace) -> int:
         audio=args.audio,
         rate_control=args.rate_control,
         intra_refresh=args.intra_refresh,
+        **quality_fields(args),
     )
     if config is None or stream is None:
         return 2

@@ -68,6 +68,7 @@ class MonitorSnapshot:
     frames: int
     dropped: int
     stages: dict[str, StageFigures] = field(default_factory=dict)
+    window_frames: int = 0  # frames in the window the rate was measured over
 
     def as_dict(self) -> dict[str, object]:
         return {
@@ -211,7 +212,9 @@ class FrameRateMonitor:
             values = np.fromiter((ms for _, ms in samples), dtype=np.float64)
             p50, p95 = np.percentile(values, [50, 95])
             stages[name] = StageFigures(float(p50), float(p95), int(values.size))
-        snap = MonitorSnapshot(fps, jitter_ms, self.frames, self.dropped, stages)
+        snap = MonitorSnapshot(
+            fps, jitter_ms, self.frames, self.dropped, stages, window_frames=int(arrivals.size)
+        )
         if self.metrics is not None:
             self.metrics.fps.labels(self.component).set(fps)
             self.metrics.jitter.labels(self.component).set(jitter_ms / 1000.0)

@@ -118,6 +118,11 @@ async def run_game_session(
             gamepad=config.gamepad,
             scale=config.scale,
             frame_generation=config.frame_generation,
+            quality=stream.quality,
+            quality_preference=stream.quality_preference,
+            min_scale=stream.min_scale,
+            max_scale=stream.max_scale,
+            quality_methods=tuple(stream.quality_methods),
             cache_policy=upscaler_registry.cache_policy_at_start(
                 config.upscaler, config.cache_policy
             ),

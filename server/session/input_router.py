@@ -78,6 +78,9 @@ class InputRouter:
         self._worker_turn = asyncio.Lock()
         # Every control request ends in exactly one result (the status track shows it).
         self.on_control_result = on_control_result
+        # Sees every accepted control request too (the quality controller's pins and goals).
+        self.on_control_applied: Callable[[ControlResult], None] | None = None
+        self._auto_seq = 0
         # Sees every accepted message with its source (the rate control reads feedback).
         self.on_message = on_message
         self.held: dict[str, HeldKeys] = {}
@@ -185,6 +188,30 @@ class InputRouter:
                 f" ({result.reason})" if result.reason else "")  # fmt: skip
         if self.on_control_result is not None:
             self.on_control_result(result)
+        if result.accepted and self.on_control_applied is not None:
+            self.on_control_applied(result)
+
+    def apply_setting(
+        self,
+        source: str,
+        *,
+        upscaler: str | None = None,
+        scale: float | None = None,
+        frame_generation: bool | None = None,
+    ) -> None:
+        """A setting the session chose itself (the quality controller): the same path,
+        checks and log lines as a person's control request from ``source``."""
+        if upscaler is None and scale is None and frame_generation is None:
+            return
+        self._auto_seq += 1
+        message = ControlMessage(
+            type="control",
+            seq=self._auto_seq,
+            upscaler=upscaler,
+            scale=scale,
+            frame_generation=frame_generation,
+        )
+        self._control(source, message)
 
     def _refuse_bad_control(self, source: str, payload: bytes, reason: str) -> None:
         """A control request that failed validation still gets an answer, with its seq."""
@@ -204,7 +231,8 @@ class InputRouter:
         problems = []
         if not requested:
             problems.append(
-                "empty control request: set upscaler, scale, cache_policy and/or frame_generation"
+                "empty control request: set upscaler, scale, cache_policy, frame_generation "
+                "and/or the quality goal (quality, preference, min_scale, max_scale, methods)"
             )
         if message.upscaler is not None and message.upscaler not in registry.available():
             problems.append(
@@ -218,6 +246,7 @@ class InputRouter:
         ):
             # Refused before the switch, so the request is not half-applied.
             problems.append(f"cache_policy: upscaler {message.upscaler!r} has no layer cache")
+        problems += _goal_problems(message)
         if self.color_only:
             problems += _color_only_problems(message)
         for name in ("upscaler", "cache_policy"):
@@ -307,6 +336,21 @@ class InputRouter:
             policy = reply.get("cache_policy")
             self.on_cache_policy(policy if isinstance(policy, str) else None)
         return None
+
+
+def _goal_problems(message: ControlMessage) -> list[str]:
+    """What is wrong with a request's quality goal (the quality controller's bounds)."""
+    problems = []
+    unknown = [m for m in message.methods or [] if m not in registry.available()]
+    if unknown:
+        problems.append(
+            f"methods: unknown {', '.join(map(repr, unknown))}; available: "
+            + ", ".join(registry.available())
+        )
+    low, high = message.min_scale, message.max_scale
+    if low is not None and high is not None and low > high:
+        problems.append(f"min_scale {low:g} is above max_scale {high:g}")
+    return problems
 
 
 def _color_only_problems(message: ControlMessage) -> list[str]:

@@ -36,6 +36,7 @@ from server.session.broadcast import GameBroadcast
 from server.session.capture import CapturedFrame, CaptureThread
 from server.session.gamepad_keys import GamepadKeyMap
 from server.session.input_router import InputRouter
+from server.session.quality.adapter import SessionQuality, session_quality
 from server.session.session_rate import SessionRate
 
 log = logging.getLogger(__name__)
@@ -69,6 +70,13 @@ class StreamSettings:
     # Intra refresh sweeps instead of periodic IDRs (encode.py); a viewer that lost a
     # group asks for a keyframe, and one comes every SAFETY_IDR_S for those that cannot.
     intra_refresh: bool = True
+    # Adaptive quality (server/session/quality): "auto" chooses upscaler, scale and frame
+    # generation to hold ``fps``; needs the starting upscaler and scale (else fixed).
+    quality: str = "fixed"
+    quality_preference: str = "framerate"
+    min_scale: float = 1.0
+    max_scale: float = 4.0
+    quality_methods: tuple[str, ...] = ()
 
 
 # Under intra refresh, an IDR this often anyway: a spectator the relay skipped (which
@@ -122,6 +130,10 @@ class StreamingSession:
             gamepad_keys=settings.gamepad,
             on_message=self.rate.on_message,
         )
+        self.quality: SessionQuality = session_quality(
+            settings, display, self.router, self.monitor, self.stream_state, registry
+        )
+        self.router.on_control_applied = self.quality.control_applied
         self._on_upscaler_set = on_upscaler_set
         self._on_scale_request = on_scale_request
         self.sound: SoundSource = sound if sound is not None else GameSounds()
@@ -227,6 +239,7 @@ class StreamingSession:
             asyncio.create_task(self._tick_loop(stop), name="session-inputs"),
             asyncio.create_task(self._monitor_loop(stop), name="session-monitor"),
             asyncio.create_task(self.rate.run(stop), name="session-rate"),
+            asyncio.create_task(self.quality.run(stop), name="session-quality"),
         ]
         if self.settings.intra_refresh:
             tasks.append(asyncio.create_task(self._safety_idr_loop(stop), name="session-idr"))
@@ -276,6 +289,7 @@ class StreamingSession:
             skipped = capture.stats.skipped - self._skipped_seen
             self._skipped_seen = capture.stats.skipped
         self.monitor.frame(frame.meta.stamps, dropped=skipped)
+        self.quality.frame(frame.meta)
 
     def _on_events(self, link: MoqLink, events: list[Event]) -> None:
         self.broadcast.handle(events)

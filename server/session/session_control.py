@@ -11,6 +11,8 @@ generated from these models (``python -m server.serve.control_schema``).
 
 from __future__ import annotations
 
+from typing import Literal
+
 from pydantic import BaseModel, ConfigDict, Field
 
 from server.config_types import CachePolicyName
@@ -42,6 +44,32 @@ class SessionControl(BaseModel):
         default=None,
         description="render every other frame and predict the rest from the last render "
         "(the stream keeps its frame rate; the game's render rate halves)",
+    )
+
+    quality: Literal["auto", "fixed"] | None = Field(
+        default=None,
+        description="auto: the session chooses upscaler, scale and frame generation to "
+        "hold its frame rate with the best picture (and lets go of what earlier requests "
+        "pinned); fixed: it keeps what it runs. A request that sets upscaler, scale or "
+        "frame_generation pins that field under auto",
+    )
+    preference: Literal["framerate", "resolution", "balanced"] | None = Field(
+        default=None,
+        description="what auto gives up first: framerate holds the rate (the picture "
+        "gives), resolution never goes below the starting picture, balanced lets the rate "
+        "fall to 3/4 of the target first",
+    )
+    min_scale: float | None = Field(
+        default=None, ge=1.0, le=4.0, allow_inf_nan=False, description="auto's lowest scale"
+    )
+    max_scale: float | None = Field(
+        default=None, ge=1.0, le=4.0, allow_inf_nan=False, description="auto's highest scale"
+    )
+    methods: list[str] | None = Field(
+        default=None,
+        max_length=16,
+        description="the upscalers auto may choose from (empty or absent: every method "
+        "with speed-against-error figures)",
     )
 
     def requested(self) -> dict[str, object]:

@@ -1,0 +1,304 @@
+"""Binds the quality controller to a live session: measurements in, switches out.
+
+Every ``CHECK_INTERVAL_S`` on the session's loop it reads the session's monitor (the
+published frame rate and each stage's p50/p95 over its window), the scene class of
+the frames published meanwhile and the host's busy cores, and hands them to the
+controller. A decision goes out the way a person's control request does (the input
+router: the game renders at the new scale from its next frame, the worker switches
+method on its control socket), as the source ``quality-auto``, so it is refused and
+logged the same way; it is one log line with its reason, and the stream state (the
+timing track: the page's overlay, ``upcast bench``) carries the choice and why.
+
+A person's accepted control request pins what it set (``quality: "auto"`` in a later
+request lets go); ``--quality fixed`` never switches anything.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import time
+from collections.abc import Mapping
+from dataclasses import replace
+from typing import Protocol
+
+from prometheus_client import CollectorRegistry, Gauge
+
+from server.frames.frame import FrameMeta, Size
+from server.frames.monitor import FrameRateMonitor
+from server.ops.host_load import HostLoad
+from server.session.input_router import InputRouter
+from server.session.quality.controller import (
+    Decision,
+    Measurement,
+    QualityController,
+    QualityGoal,
+    SourceLimits,
+)
+from server.session.quality.figures import FiguresError, load_figures
+from server.session.quality.model import QualityModel, Setting
+from server.session.quality.scene import SceneTracker
+from server.session.session_control import ControlResult
+
+log = logging.getLogger(__name__)
+
+
+class StreamSettingsLike(Protocol):
+    """What the adapter reads of the session's settings (runner.StreamSettings)."""
+
+    @property
+    def fps(self) -> float: ...
+    @property
+    def upscaler(self) -> str | None: ...
+    @property
+    def scale(self) -> float | None: ...
+    @property
+    def frame_generation(self) -> bool | None: ...
+    @property
+    def source(self) -> str: ...
+    @property
+    def quality(self) -> str: ...
+    @property
+    def quality_preference(self) -> str: ...
+    @property
+    def min_scale(self) -> float: ...
+    @property
+    def max_scale(self) -> float: ...
+    @property
+    def quality_methods(self) -> tuple[str, ...]: ...
+
+
+CHECK_INTERVAL_S = 0.5
+AUTO_SOURCE = "quality-auto"
+
+
+class QualityMetrics:
+    def __init__(self, registry: CollectorRegistry) -> None:
+        self.expected = Gauge(
+            "upcast_quality_expected_psnr_db",
+            "PSNR the current setting is expected to give (speed-against-error table)",
+            registry=registry,
+        )
+        self.scale = Gauge("upcast_quality_render_scale", "Render scale chosen", registry=registry)
+        self.headroom = Gauge(
+            "upcast_quality_host_idle_cores", "Host cores idle at the last check", registry=registry
+        )
+        self.switches = Gauge(
+            "upcast_quality_switches", "Settings switched by the controller", registry=registry
+        )
+
+
+class SessionQuality:
+    def __init__(
+        self,
+        controller: QualityController | None,
+        router: InputRouter,
+        monitor: FrameRateMonitor,
+        stream_state: dict[str, str | float | bool],
+        *,
+        enabled: bool = True,
+        host: HostLoad | None = None,
+        registry: CollectorRegistry | None = None,
+    ) -> None:
+        self.controller = controller
+        self.router = router
+        self.monitor = monitor
+        self.enabled = enabled and controller is not None
+        # Why auto cannot run here (no figures for the method, an unknown start).
+        self.unavailable: str | None = None
+        self.scene = SceneTracker()
+        self.host = host if host is not None else HostLoad()
+        self._state = stream_state
+        self._metrics = QualityMetrics(registry) if registry is not None else None
+        self.decisions: list[Decision] = []
+        self._publish()
+
+    def frame(self, meta: FrameMeta) -> None:
+        self.scene.frame(meta, time.monotonic())
+
+    def control_applied(self, result: ControlResult) -> None:
+        """An accepted control request: its goal fields change the controller's goal,
+        ``quality`` turns it on or off, and a person's upscaler, scale or frame
+        generation is pinned (``quality: "auto"`` lets go of every pin)."""
+        if result.source == AUTO_SOURCE:
+            return
+        if self.controller is None:
+            if result.requested.get("quality") == "auto":
+                log.warning("quality: auto asked by %s but unavailable: %s", result.source,
+                            self.unavailable)  # fmt: skip
+            return
+        req = result.requested
+        self._set_goal(req, result.source)
+        mode = req.get("quality")
+        if mode == "auto":
+            self.enabled = True
+            self.controller.unpin()
+            log.info("quality: auto (set by %s), nothing pinned", result.source)
+        elif mode == "fixed":
+            self.enabled = False
+            log.info("quality: fixed (set by %s)", result.source)
+        method, scale, fg = req.get("upscaler"), req.get("scale"), req.get("frame_generation")
+        if method is not None or scale is not None or fg is not None:
+            self.controller.pin(
+                method=method if isinstance(method, str) else None,
+                scale=float(scale) if isinstance(scale, int | float) else None,
+                frame_generation=fg if isinstance(fg, bool) else None,
+            )
+            if self.enabled:
+                log.info(
+                    "quality: %s pinned by a control request from %s (auto adapts the rest)",
+                    ", ".join(k for k in ("upscaler", "scale", "frame_generation") if k in req),
+                    result.source,
+                )
+        self._publish()
+
+    def _set_goal(self, req: Mapping[str, object], source: str) -> None:
+        assert self.controller is not None
+        goal = self.controller.goal
+        changes: dict[str, object] = {}
+        for key in ("preference", "min_scale", "max_scale"):
+            if req.get(key) is not None:
+                changes[key] = req[key]
+        methods = req.get("methods")
+        if isinstance(methods, list):
+            changes["methods"] = tuple(str(m) for m in methods)
+        if not changes:
+            return
+        try:
+            self.controller.set_goal(replace(goal, **changes))  # type: ignore[arg-type]
+        except ValueError as exc:
+            log.warning("quality goal from %s not applied: %s", source, exc)
+            return
+        log.info("quality goal set by %s: %s", source, changes)
+
+    def step(self, now: float) -> Decision | None:
+        if self.controller is None:
+            return None
+        snap = self.monitor.snapshot()
+        p50: Mapping[str, float] = {k: f.p50_ms for k, f in snap.stages.items()}
+        p95: Mapping[str, float] = {k: f.p95_ms for k, f in snap.stages.items()}
+        measurement = Measurement(
+            now=now,
+            fps=snap.fps if math.isfinite(snap.fps) else math.nan,
+            frames=snap.window_frames,
+            p50=p50,
+            p95=p95,
+            scene=self.scene.scene(now),
+            host_busy_cores=self.host.busy_cores(),
+            host_cores=self.host.cores,
+        )
+        log.debug(
+            "quality check: %.1f fps (%d frames), p50 %s, p95 %s, scene %s, host busy %s of %g",
+            measurement.fps, measurement.frames,
+            {k: round(v, 1) for k, v in p50.items()}, {k: round(v, 1) for k, v in p95.items()},
+            measurement.scene, measurement.host_busy_cores, measurement.host_cores,
+        )  # fmt: skip
+        decision = None
+        if self.enabled and self.controller is not None:
+            decision = self.controller.update(measurement)
+        if decision is not None:
+            self._apply(decision)
+        self._publish()
+        return decision
+
+    def _apply(self, decision: Decision) -> None:
+        log.info("%s", decision.log_line())
+        self.decisions.append(decision)
+        new, old = decision.setting, decision.previous
+        self.router.apply_setting(
+            AUTO_SOURCE,
+            upscaler=new.method if new.method != old.method else None,
+            scale=new.scale if abs(new.scale - old.scale) > 1e-6 else None,
+            frame_generation=(
+                new.frame_generation if new.frame_generation != old.frame_generation else None
+            ),
+        )
+
+    def _publish(self) -> None:
+        self._state["quality"] = "auto" if self.enabled else "fixed"
+        if self.controller is None:
+            self._state["quality_reason"] = self.unavailable or "fixed"
+            return
+        st = self.controller.state
+        self._state["quality_reason"] = st.reason if self.enabled else "fixed"
+        if math.isfinite(st.expected_psnr_db):
+            self._state["expected_psnr_db"] = round(st.expected_psnr_db, 2)
+        if st.headroom_cores is not None:
+            self._state["host_idle_cores"] = round(st.headroom_cores, 2)
+        if self._metrics is not None:
+            if math.isfinite(st.expected_psnr_db):
+                self._metrics.expected.set(st.expected_psnr_db)
+            self._metrics.scale.set(st.setting.scale)
+            self._metrics.switches.set(st.switches)
+            if st.headroom_cores is not None:
+                self._metrics.headroom.set(st.headroom_cores)
+
+    async def run(self, stop: asyncio.Event) -> None:
+        while not stop.is_set():
+            await asyncio.sleep(CHECK_INTERVAL_S)
+            try:
+                self.step(time.monotonic())
+            except Exception:  # a controller bug must never end the stream
+                log.exception("quality check failed; the setting stays")
+
+
+def session_quality(
+    settings: StreamSettingsLike,
+    display: Size,
+    router: InputRouter,
+    monitor: FrameRateMonitor,
+    stream_state: dict[str, str | float | bool],
+    registry: CollectorRegistry | None,
+) -> SessionQuality:
+    """The session's quality adapter; fixed (with the reason logged) where auto cannot
+    run: the start is unknown, or the method has no speed-against-error figures."""
+    controller, why = _controller_for(settings, display)
+    enabled = settings.quality == "auto"
+    if controller is None and enabled:
+        log.warning("quality: auto unavailable, the settings stay fixed: %s", why)
+    adapter = SessionQuality(
+        controller, router, monitor, stream_state, enabled=enabled, registry=registry
+    )
+    adapter.unavailable = why
+    if adapter.enabled and controller is not None:
+        goal = controller.goal
+        log.info(
+            "quality: auto from %s, holding %.0f fps (%s preferred, scale %g-%g, methods %s)",
+            controller.setting.describe(), goal.target_fps, goal.preference, goal.min_scale,
+            goal.max_scale, ", ".join(goal.methods) or "all with figures",
+        )  # fmt: skip
+    return adapter
+
+
+def _controller_for(
+    settings: StreamSettingsLike, display: Size
+) -> tuple[QualityController | None, str | None]:
+    if settings.upscaler is None or settings.scale is None:
+        return None, "the starting upscaler and render scale are not known to this session"
+    try:
+        figures = load_figures()
+    except FiguresError as exc:
+        return None, str(exc)
+    if settings.upscaler not in figures.methods:
+        return None, (
+            f"no speed-against-error figures for {settings.upscaler!r} (auto chooses among "
+            f"{', '.join(sorted(figures.methods))})"
+        )
+    color_only = settings.source != "game"
+    limits = SourceLimits(
+        scale=not color_only, temporal=not color_only, frame_generation=not color_only
+    )
+    try:
+        goal = QualityGoal(
+            target_fps=settings.fps,
+            preference=settings.quality_preference,  # type: ignore[arg-type]
+            min_scale=settings.min_scale,
+            max_scale=settings.max_scale,
+            methods=tuple(settings.quality_methods),
+        )
+    except ValueError as exc:
+        return None, str(exc)
+    start = Setting(settings.upscaler, float(settings.scale), bool(settings.frame_generation))
+    model = QualityModel(figures, display.width * display.height)
+    return QualityController(model, goal, start, limits), None

@@ -1,0 +1,433 @@
+"""The quality controller: the best picture a session's target frame rate allows.
+
+Sans-IO, like the rate controller: ``update`` takes one window's measurements (the
+monitor's frame rate and stage times, the scene class, the host's busy cores) and
+returns a ``Decision`` with its reason, or None to keep the setting. It learns as it
+goes (model.py) and never touches a process.
+
+In the manner of libwebrtc's CPU adaptation and a game engine's dynamic resolution:
+
+- **Down fast.** ``DOWN_CHECKS`` checks in a row that miss the target (the frame
+  rate under ``HOLD_FRACTION`` of it while the host is busy, or a stage's median over
+  its one-period budget) switch at once to the best-looking setting predicted to
+  fit: every stage's median within ``DOWN_MARGIN`` of its budget and the whole
+  session's CPU within what the frame rate shows it gets (``fps / target`` of what
+  it needs now, times ``DOWN_MARGIN``). When none fits, the cheapest.
+- **Up carefully.** After ``UP_HOLD_S`` without a miss, one small step (the render
+  scale by at most one ladder step, and/or another method or frame generation) to a
+  setting predicted to look at least ``UP_MIN_GAIN_DB`` better, with every stage's
+  median within ``UP_MARGIN`` of its budget and its extra CPU inside the host's idle cores
+  less a ``HOST_RESERVE`` (on a host shared by sessions, the idle cores are what
+  the others leave). A switch that restarts a temporal method's history (any
+  change of scale or method while one runs) must gain ``RESET_COST_DB`` more.
+- **Probation.** A step up that misses within ``PROBATION_S`` goes back at once,
+  and that setting is not tried again for ``BLOCK_S`` (doubling each time it fails
+  again, up to ``BLOCK_MAX_S``): a host on the edge settles instead of hunting.
+- **Settle.** After any switch, ``SETTLE_S`` passes before the next judgement, so
+  the monitor's window holds only frames of the new setting; nothing is judged in
+  the first ``WARMUP_S`` (start-up: kernels compile, caches fill).
+
+Degradation preference (WebRTC's ``degradationPreference``): ``framerate`` (games:
+the rate holds, the picture gives), ``resolution`` (never below the picture it
+started with: the rate falls to what the host carries) and ``balanced`` (the rate
+may fall to ``BALANCED_FRACTION`` of the target before the picture gives).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
+from typing import Literal
+
+from server.session.quality.model import (
+    STAGES,
+    QualityModel,
+    Setting,
+    StageTimes,
+    scale_ladder,
+    settings_grid,
+)
+from server.session.quality.scene import SceneClass
+
+Preference = Literal["framerate", "resolution", "balanced"]
+PREFERENCES: tuple[Preference, ...] = ("framerate", "resolution", "balanced")
+
+HOLD_FRACTION = 0.9  # a window under this share of the target misses it
+BALANCED_FRACTION = 0.75
+HOST_BUSY_FRACTION = 0.85  # the host counts as busy from this share of its cores
+DOWN_CHECKS = 2
+DOWN_MARGIN = 0.85
+UP_MARGIN = 0.75
+UP_HOLD_S = 6.0
+UP_MIN_GAIN_DB = 0.2
+RESET_COST_DB = 0.15
+HOST_RESERVE = 0.1  # of the host's cores, never planned for
+PROBATION_S = 10.0
+BLOCK_S = 20.0
+BLOCK_MAX_S = 160.0
+SETTLE_S = 2.0
+WARMUP_S = 5.0
+SCALE_STEP = 0.25
+MIN_FRAMES = 5  # a window with fewer frames says nothing about the rate
+
+
+@dataclass(frozen=True)
+class QualityGoal:
+    """What the session is asked for (the control API may change it at run time)."""
+
+    target_fps: float
+    preference: Preference = "framerate"
+    min_scale: float = 1.0
+    max_scale: float = 4.0
+    methods: tuple[str, ...] = ()  # empty: every method with figures
+    frame_generation: bool = True  # whether the controller may predict frames
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.target_fps) and self.target_fps > 0):
+            raise ValueError(f"target_fps must be positive, got {self.target_fps}")
+        if self.preference not in PREFERENCES:
+            raise ValueError(f"preference must be one of {', '.join(PREFERENCES)}")
+        if not 1.0 <= self.min_scale <= self.max_scale <= 4.0:
+            raise ValueError("need 1 <= min_scale <= max_scale <= 4")
+
+
+@dataclass(frozen=True)
+class SourceLimits:
+    """What the source lets change: a captured application (colour only) has a fixed
+    size, no depth or motion for a temporal method, and nothing to predict from."""
+
+    scale: bool = True
+    temporal: bool = True
+    frame_generation: bool = True
+
+
+@dataclass(frozen=True)
+class Measurement:
+    now: float
+    fps: float  # frames published per second over the window
+    frames: int  # frames in the window
+    p50: Mapping[str, float]  # stage -> ms
+    p95: Mapping[str, float]
+    scene: SceneClass = "unknown"
+    host_busy_cores: float | None = None  # every process on the host
+    host_cores: float = 1.0
+
+
+@dataclass(frozen=True)
+class Decision:
+    setting: Setting
+    previous: Setting
+    direction: Literal["down", "up", "back"]
+    reason: str
+    expected_psnr_db: float
+    predicted: StageTimes
+
+    def log_line(self) -> str:
+        return (
+            f"quality {self.direction}: {self.previous.describe()} -> {self.setting.describe()} "
+            f"(expected {self.expected_psnr_db:.2f} dB; {self.reason})"
+        )
+
+
+@dataclass
+class ControllerState:
+    """What the controller shows (the status track, /sessions, Prometheus)."""
+
+    setting: Setting
+    expected_psnr_db: float = math.nan
+    reason: str = "starting"
+    headroom_cores: float | None = None
+    switches: int = 0
+    last_change_at: float | None = None
+    at_floor: bool = False  # nothing cheaper is left and the target is still missed
+
+
+@dataclass
+class _Block:
+    until: float
+    backoff_s: float
+
+
+@dataclass
+class _Pins:
+    method: str | None = None
+    scale: float | None = None
+    frame_generation: bool | None = None
+
+
+@dataclass
+class QualityController:
+    model: QualityModel
+    goal: QualityGoal
+    start: Setting
+    limits: SourceLimits = field(default_factory=SourceLimits)
+
+    def __post_init__(self) -> None:
+        self.state = ControllerState(self.start)
+        self._floor_psnr = self.model.expected_psnr(self.start, "unknown")
+        self._misses = 0
+        self._last_miss_at: float | None = None
+        self._last_up: tuple[float, Setting] | None = None  # (when, from what)
+        self._blocked: dict[Setting, _Block] = {}
+        self._pins = _Pins()
+        self._said_floor = False
+        self._first_at: float | None = None
+
+    # -- the control API's side ------------------------------------------------------
+
+    @property
+    def setting(self) -> Setting:
+        return self.state.setting
+
+    def set_goal(self, goal: QualityGoal) -> None:
+        self.goal = goal
+
+    def pin(
+        self,
+        *,
+        method: str | None = None,
+        scale: float | None = None,
+        frame_generation: bool | None = None,
+    ) -> None:
+        """Hold the given fields where a person set them (a control request did): the
+        controller adapts only the others. The setting takes them at once."""
+        if method is not None:
+            self._pins.method = method
+        if scale is not None:
+            self._pins.scale = scale
+        if frame_generation is not None:
+            self._pins.frame_generation = frame_generation
+        now = self.state.setting
+        self.state.setting = Setting(
+            method if method is not None else now.method,
+            scale if scale is not None else now.scale,
+            frame_generation if frame_generation is not None else now.frame_generation,
+        )
+
+    def unpin(self) -> None:
+        self._pins = _Pins()
+
+    # -- judging ---------------------------------------------------------------------
+
+    def update(self, m: Measurement) -> Decision | None:
+        current = self.state.setting
+        if self._first_at is None:
+            self._first_at = m.now  # a step up waits for measurements, not priors
+        settled = self.state.last_change_at is None or m.now - self.state.last_change_at >= SETTLE_S
+        if not settled:
+            return None
+        p50 = _finite(m.p50)
+        p95 = _finite(m.p95)
+        self.model.learn(current, p50, p95)
+        self.state.expected_psnr_db = self.model.expected_psnr(current, m.scene)
+        self.state.headroom_cores = _idle(m)
+        if m.now - self._first_at < WARMUP_S:
+            return None  # the first seconds are start-up: kernels, caches, a cold encoder
+        miss = self._miss(m, p50)
+        if miss is not None:
+            self._misses += 1
+            self._last_miss_at = m.now
+        else:
+            self._misses = 0
+        if miss is not None and self._misses >= DOWN_CHECKS:
+            return self._down(m, miss, p50)
+        if miss is None and self._quiet_for(m.now) >= UP_HOLD_S:
+            return self._up(m)
+        return None
+
+    def _quiet_for(self, now: float) -> float:
+        marks = (self._last_miss_at, self.state.last_change_at, self._first_at)
+        since = [t for t in marks if t is not None]
+        return math.inf if not since else now - max(since)
+
+    def _judged_fps(self) -> float:
+        if self.goal.preference == "balanced":
+            return self.goal.target_fps * BALANCED_FRACTION
+        return self.goal.target_fps
+
+    def _miss(self, m: Measurement, p50: Mapping[str, float]) -> str | None:
+        """Why this window misses the target, or None. The frame rate decides: a stage's
+        p95 past its period on a shared host is often a preemption, not a cost, while a
+        median past it caps the rate for sure."""
+        budget = 1000.0 / self.goal.target_fps
+        over = [s for s in STAGES if p50.get(s, 0.0) > budget]
+        if over:
+            s = over[0]
+            return f"{s} p50 {p50[s]:.1f} ms over its {budget:.1f} ms budget"
+        fps = m.fps if math.isfinite(m.fps) else math.nan
+        wanted = self._judged_fps() * HOLD_FRACTION
+        if m.frames >= MIN_FRAMES and fps < wanted and self._host_busy(m):
+            slowest = max(STAGES, key=lambda s: p50.get(s, 0.0))
+            return f"{fps:.1f} fps under {wanted:.1f} ({slowest} p50 {p50.get(slowest, 0):.1f} ms)"
+        return None
+
+    def _host_busy(self, m: Measurement) -> bool:
+        """A low rate on an idle host is the source's pace (an application that draws
+        slower), not a cost this controller can cut."""
+        busy = m.host_busy_cores
+        if busy is None or not math.isfinite(busy):
+            return True
+        return busy >= HOST_BUSY_FRACTION * m.host_cores
+
+    # -- choosing --------------------------------------------------------------------
+
+    def _candidates(self) -> list[Setting]:
+        table = self.model.methods()
+        methods = [x for x in table if not self.goal.methods or x in self.goal.methods]
+        if not self.limits.temporal:
+            methods = [x for x in methods if not _is_temporal(x)]
+        current = self.state.setting
+        if self._pins.method is not None:
+            methods = [self._pins.method]
+        if self.limits.scale and self._pins.scale is None:
+            scales = scale_ladder(self.goal.min_scale, self.goal.max_scale, SCALE_STEP)
+        else:
+            scales = [current.scale if self._pins.scale is None else self._pins.scale]
+        if self._pins.frame_generation is not None:
+            fgs = [self._pins.frame_generation]
+        elif self.goal.frame_generation and self.limits.frame_generation:
+            fgs = [False, True]
+        else:
+            fgs = [False]
+        grid = [s for s in settings_grid(methods, scales, fgs) if s.method in table]
+        return grid
+
+    def _blocked_now(self, setting: Setting, now: float) -> bool:
+        block = self._blocked.get(setting)
+        return block is not None and now < block.until
+
+    def _resets_history(self, a: Setting, b: Setting) -> bool:
+        if not (_is_temporal(a.method) or _is_temporal(b.method)):
+            return False
+        return a.method != b.method or abs(a.scale - b.scale) > 1e-6
+
+    def _down(self, m: Measurement, miss: str, p50: Mapping[str, float]) -> Decision | None:
+        current = self.state.setting
+        self._misses = 0
+        if self._last_up is not None and m.now - self._last_up[0] <= PROBATION_S:
+            # The last step up did not hold: back, and leave that setting alone a while.
+            _, before = self._last_up
+            block = self._blocked.get(current)
+            backoff = BLOCK_S if block is None else min(BLOCK_MAX_S, block.backoff_s * 2)
+            self._blocked[current] = _Block(m.now + backoff, backoff)
+            self._last_up = None
+            reason = f"{miss}; the step up did not hold, not tried again for {backoff:.0f} s"
+            return self._switch(m, before, "back", reason)
+        budget = 1000.0 / self.goal.target_fps
+        now_times = self.model.predict(current)
+        fps = m.fps if math.isfinite(m.fps) and m.fps > 0 else self._judged_fps()
+        share = min(1.0, fps / self._judged_fps())
+        cpu_allowed = now_times.cpu_cores(self.goal.target_fps) * share * DOWN_MARGIN
+        fitting: list[tuple[float, Setting, StageTimes]] = []
+        cheapest: tuple[float, Setting, StageTimes] | None = None
+        for cand in self._candidates():
+            times = self.model.predict(cand)
+            cpu = times.cpu_cores(self.goal.target_fps)
+            if cheapest is None or cpu < cheapest[0]:
+                cheapest = (cpu, cand, times)
+            if cand == current:
+                continue
+            quality = self.model.expected_psnr(cand, m.scene)
+            if self.goal.preference == "resolution" and quality < self._floor_psnr - 0.05:
+                continue
+            fits_stages = all(times.p50[s] <= budget * DOWN_MARGIN for s in STAGES)
+            if fits_stages and cpu <= cpu_allowed:
+                penalty = RESET_COST_DB if self._resets_history(current, cand) else 0.0
+                fitting.append((quality - penalty, cand, times))
+        if fitting:
+            _, best, _ = max(fitting, key=lambda x: (x[0], -x[2].cpu_cores(1.0)))
+            return self._switch(m, best, "down", miss)
+        if cheapest is None or cheapest[1] == current or self.goal.preference == "resolution":
+            self.state.at_floor = True
+            if not self._said_floor:
+                self._said_floor = True
+                self.state.reason = f"{miss}; nothing cheaper is allowed: at the lowest setting"
+                return None
+            return None
+        return self._switch(m, cheapest[1], "down", f"{miss}; nothing fits: the cheapest")
+
+    def _up(self, m: Measurement) -> Decision | None:
+        current = self.state.setting
+        budget = 1000.0 / self.goal.target_fps
+        here = self.model.predict(current)
+        here_cpu = here.cpu_cores(self.goal.target_fps)
+        here_q = self.model.expected_psnr(current, m.scene)
+        idle = _idle(m)
+        # Without a host reading, a step may add a tenth of what the session takes.
+        spare = (idle - HOST_RESERVE * m.host_cores) if idle is not None else 0.1 * here_cpu
+        best: tuple[float, Setting, float] | None = None
+        for cand in self._candidates():
+            if cand == current or self._blocked_now(cand, m.now):
+                continue
+            if abs(cand.scale - current.scale) > SCALE_STEP + 1e-6:
+                continue
+            times = self.model.predict(cand)
+            if any(times.p50[s] > budget * UP_MARGIN for s in STAGES):
+                continue
+            extra = times.cpu_cores(self.goal.target_fps) - here_cpu
+            if extra > 0 and extra > spare:
+                continue
+            penalty = RESET_COST_DB if self._resets_history(current, cand) else 0.0
+            gain = self.model.expected_psnr(cand, m.scene) - here_q - penalty
+            if gain >= UP_MIN_GAIN_DB and (best is None or gain > best[0]):
+                best = (gain, cand, extra)
+        if best is None:
+            return None
+        gain, cand, extra = best
+        spare_text = f"{idle:.2f} idle cores" if idle is not None else "no host reading"
+        reason = f"+{gain:.2f} dB expected for {extra:+.2f} cores ({spare_text})"
+        self._last_up = (m.now, current)
+        return self._switch(m, cand, "up", reason)
+
+    def _switch(
+        self, m: Measurement, setting: Setting, direction: Literal["down", "up", "back"], why: str
+    ) -> Decision:
+        previous = self.state.setting
+        if direction != "up":
+            self._last_up = None
+        self.state = replace(
+            self.state,
+            setting=setting,
+            expected_psnr_db=self.model.expected_psnr(setting, m.scene),
+            reason=why,
+            switches=self.state.switches + 1,
+            last_change_at=m.now,
+            at_floor=False,
+        )
+        self._said_floor = False
+        return Decision(
+            setting=setting,
+            previous=previous,
+            direction=direction,
+            reason=why,
+            expected_psnr_db=self.state.expected_psnr_db,
+            predicted=self.model.predict(setting),
+        )
+
+
+def _finite(values: Mapping[str, float]) -> dict[str, float]:
+    """Stage times a window can trust: finite and not negative (NaN, Inf or a missing
+    stage means "not measured", never zero)."""
+    out: dict[str, float] = {}
+    for k, v in values.items():
+        try:
+            f = float(v)
+        except (TypeError, ValueError):
+            continue
+        if math.isfinite(f) and f >= 0.0:
+            out[k] = f
+    return out
+
+
+def _idle(m: Measurement) -> float | None:
+    busy = m.host_busy_cores
+    if busy is None or not math.isfinite(busy) or not math.isfinite(m.host_cores):
+        return None
+    return max(0.0, m.host_cores - busy)
+
+
+def _is_temporal(method: str) -> bool:
+    from upscalers import registry
+
+    return registry.is_temporal(method)

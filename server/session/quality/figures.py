@@ -1,0 +1,206 @@
+"""The speed-against-error table adaptive quality rests on, derived from measurements.
+
+Two committed reports are its source: ``docs/reports/eval_upscalers.json`` (every
+upscaler's time and PSNR against the game's ground truth at 1.5x, 2x and 3x, per
+scene) and ``docs/reports/framegen.json`` (the frame predictor's time and PSNR per
+scene). ``python -m server.session.quality.figures`` rewrites ``figures.json`` beside
+this file from them; ``tests/test_quality_figures.py`` fails when the two disagree,
+so the table is never typed in and cannot drift from the reports. The table ships in
+the package (the reports do not: the Docker build context leaves docs/reports out).
+
+Quality does not depend on the machine; time does. The times here were measured on
+the machine named in the table, and the controller rescales them online from the
+stage times it measures (model.py), so a faster or slower host, or one loaded by
+other sessions, corrects them within seconds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+FIGURES_PATH = Path(__file__).with_name("figures.json")
+ROOT = Path(__file__).resolve().parents[3]
+EVAL_REPORT = ROOT / "docs" / "reports" / "eval_upscalers.json"
+FRAMEGEN_REPORT = ROOT / "docs" / "reports" / "framegen.json"
+PREDICTOR = "mpe16"  # the worker's default predictor (server/worker/prediction.py)
+# PSNR of a prediction that is exact (a still scene predicts itself): the report
+# writes 100 dB there; any finite cap far above the upscalers' figures serves.
+EXACT_PSNR_DB = 100.0
+
+
+class FiguresError(ValueError):
+    """The figures file or a report it is made from is missing or malformed."""
+
+
+@dataclass(frozen=True)
+class MethodFigures:
+    """One upscaler at the evaluation's scales (ascending), display-size frames."""
+
+    scales: tuple[float, ...]
+    median_ms: tuple[float, ...]
+    p95_ms: tuple[float, ...]
+    psnr_db: Mapping[str, tuple[float, ...]]  # scene -> PSNR at each scale
+
+
+@dataclass(frozen=True)
+class SpeedErrorFigures:
+    display_pixels: int  # the size the times were measured at
+    machine: str
+    methods: Mapping[str, MethodFigures]
+    predict_ms: float  # the frame predictor, per predicted frame at predict_pixels
+    predict_pixels: int
+    predict_psnr_db: Mapping[str, float]  # scene -> PSNR of predicted frames
+    render_ms: float  # the built-in renderer, median, at predict_pixels
+    scenes: tuple[str, ...]
+
+
+def _floats(values: Any, what: str) -> tuple[float, ...]:
+    if not isinstance(values, list) or not values:
+        raise FiguresError(f"{what}: expected a non-empty list of numbers")
+    out = tuple(float(v) for v in values)
+    if not all(math.isfinite(v) and v >= 0 for v in out):
+        raise FiguresError(f"{what}: every value must be finite and >= 0")
+    return out
+
+
+def parse_figures(raw: Mapping[str, Any]) -> SpeedErrorFigures:
+    """The table from its JSON form; raises FiguresError naming what is wrong."""
+    try:
+        methods: dict[str, MethodFigures] = {}
+        for name, entry in raw["methods"].items():
+            scales = _floats(entry["scales"], f"{name}.scales")
+            if list(scales) != sorted(set(scales)):
+                raise FiguresError(f"{name}.scales must be ascending without repeats")
+            psnr = {s: _floats(v, f"{name}.psnr_db.{s}") for s, v in entry["psnr_db"].items()}
+            columns = [_floats(entry["median_ms"], f"{name}.median_ms"),
+                       _floats(entry["p95_ms"], f"{name}.p95_ms"), *psnr.values()]  # fmt: skip
+            if any(len(c) != len(scales) for c in columns):
+                raise FiguresError(f"{name}: one figure per scale expected")
+            methods[name] = MethodFigures(scales, columns[0], columns[1], psnr)
+        predict = {str(k): float(v) for k, v in raw["predict_psnr_db"].items()}
+        figures = SpeedErrorFigures(
+            display_pixels=int(raw["display_pixels"]),
+            machine=str(raw["machine"]),
+            methods=methods,
+            predict_ms=float(raw["predict_ms"]),
+            predict_pixels=int(raw["predict_pixels"]),
+            predict_psnr_db=predict,
+            render_ms=float(raw["render_ms"]),
+            scenes=tuple(str(s) for s in raw["scenes"]),
+        )
+    except (KeyError, TypeError, AttributeError) as exc:
+        raise FiguresError(f"malformed speed-against-error figures: {exc!r}") from None
+    if not methods:
+        raise FiguresError("no method in the figures")
+    return figures
+
+
+def load_figures(path: Path = FIGURES_PATH) -> SpeedErrorFigures:
+    try:
+        raw = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise FiguresError(f"cannot read {path}: {exc}") from None
+    return parse_figures(raw)
+
+
+def _size_pixels(text: str) -> int:
+    w, h = text.lower().split("x")
+    return int(w) * int(h)
+
+
+def derive_figures(
+    eval_report: Mapping[str, Any], framegen_report: Mapping[str, Any]
+) -> dict[str, Any]:
+    """The table's JSON form from the two reports (plain methods only: the ``+torch``
+    and ``+compiled`` variants are the same method on another backend)."""
+    config = eval_report["config"]
+    scenes = [str(s) for s in config["scenes"]]
+    by_method: dict[str, dict[float, Mapping[str, Any]]] = {}
+    for case in eval_report["cases"]:
+        method = str(case["method"])
+        if "+" in method:
+            continue
+        by_method.setdefault(method, {})
+        by_method[method].setdefault(float(case["scale"]), {})
+        by_method[method][float(case["scale"])][str(case["scene"])] = case  # type: ignore[index]
+    methods: dict[str, Any] = {}
+    for method, per_scale in sorted(by_method.items()):
+        scales = sorted(per_scale)
+        entry: dict[str, Any] = {"scales": scales, "median_ms": [], "p95_ms": [],
+                                 "psnr_db": {s: [] for s in scenes}}  # fmt: skip
+        for scale in scales:
+            cases = per_scale[scale]
+            # One time per method and scale: the median over scenes of each scene's figure.
+            entry["median_ms"].append(round(_median([c["median_ms"] for c in cases.values()]), 3))
+            entry["p95_ms"].append(round(_median([c["p95_ms"] for c in cases.values()]), 3))
+            for scene in scenes:
+                entry["psnr_db"][scene].append(round(float(cases[scene]["psnr_db"]), 3))
+        methods[method] = entry
+    predict_ms: list[float] = []
+    predict_psnr: dict[str, float] = {}
+    render_ms = None
+    for case in framegen_report["cases"]:
+        if case.get("kind") == "render":
+            render_ms = float(case["median_ms"])
+        elif case.get("method") == PREDICTOR:
+            predict_ms.append(float(case["median_ms"]))
+            predict_psnr[str(case["scene"])] = round(min(EXACT_PSNR_DB, float(case["psnr_db"])), 3)
+    if render_ms is None or not predict_ms:
+        raise FiguresError(f"the frame-generation report has no render case or no {PREDICTOR}")
+    machine = eval_report.get("machine", {})
+    return {
+        "source": ["docs/reports/eval_upscalers.json", "docs/reports/framegen.json"],
+        "machine": f"{machine.get('cpu', '?')}, {machine.get('cpu_count', '?')} cores",
+        "display_pixels": _size_pixels(str(config["display_size"])),
+        "scenes": scenes,
+        "methods": methods,
+        "predict_ms": round(_median(predict_ms), 3),
+        "predict_pixels": _size_pixels(str(framegen_report["config"]["size"])),
+        "predict_psnr_db": predict_psnr,
+        "render_ms": round(render_ms, 3),
+    }
+
+
+def _median(values: list[Any]) -> float:
+    ordered = sorted(float(v) for v in values)
+    mid = len(ordered) // 2
+    return ordered[mid] if len(ordered) % 2 else (ordered[mid - 1] + ordered[mid]) / 2
+
+
+def derive_from_reports(
+    eval_path: Path = EVAL_REPORT, framegen_path: Path = FRAMEGEN_REPORT
+) -> dict[str, Any]:
+    try:
+        eval_report = json.loads(eval_path.read_text())
+        framegen_report = json.loads(framegen_path.read_text())
+    except (OSError, ValueError) as exc:
+        raise FiguresError(f"cannot read the reports: {exc}") from None
+    return derive_figures(eval_report, framegen_report)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m server.session.quality.figures",
+        description="Rewrite the adaptive-quality speed-against-error table from the "
+        "evaluation reports.",
+    )
+    parser.add_argument("--eval-report", type=Path, default=EVAL_REPORT)
+    parser.add_argument("--framegen-report", type=Path, default=FRAMEGEN_REPORT)
+    parser.add_argument("--out", type=Path, default=FIGURES_PATH)
+    args = parser.parse_args(argv)
+    table = derive_from_reports(args.eval_report, args.framegen_report)
+    parse_figures(table)  # what we write must load
+    args.out.write_text(json.dumps(table, indent=1) + "\n")
+    print(f"wrote {args.out} ({len(table['methods'])} methods)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
