@@ -83,6 +83,10 @@ def serve(port: int, *args: str, up_timeout_s: float = 120.0) -> Iterator[Served
     generate_key(key_path)
     cmd = [sys.executable, "-m", "server.cli", "serve", "--port", str(port)]
     cmd += ["--auth-key", str(key_path), *args]
+    if "--quality" not in args:
+        # These tests assert the settings they start with or ask for; adaptive quality
+        # has tests of its own (tests/test_quality_*.py).
+        cmd += ["--quality", "fixed"]
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     proc = subprocess.Popen(cmd, cwd=ROOT, env=env, text=True)
     served = Served(proc, port, port + 1, load_key(key_path))

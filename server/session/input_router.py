@@ -78,8 +78,9 @@ class InputRouter:
         self._worker_turn = asyncio.Lock()
         # Every control request ends in exactly one result (the status track shows it).
         self.on_control_result = on_control_result
-        # Sees every accepted control request too (the quality controller's pins and goals).
-        self.on_control_applied: Callable[[ControlResult], None] | None = None
+        # Sees every control result too, accepted or refused (the quality controller's
+        # pins and goals, and its own requests that did not go through).
+        self.on_control_outcome: Callable[[ControlResult], None] | None = None
         self._auto_seq = 0
         # Sees every accepted message with its source (the rate control reads feedback).
         self.on_message = on_message
@@ -188,8 +189,8 @@ class InputRouter:
                 f" ({result.reason})" if result.reason else "")  # fmt: skip
         if self.on_control_result is not None:
             self.on_control_result(result)
-        if result.accepted and self.on_control_applied is not None:
-            self.on_control_applied(result)
+        if self.on_control_outcome is not None:
+            self.on_control_outcome(result)
 
     def apply_setting(
         self,
@@ -198,11 +199,12 @@ class InputRouter:
         upscaler: str | None = None,
         scale: float | None = None,
         frame_generation: bool | None = None,
-    ) -> None:
+    ) -> int | None:
         """A setting the session chose itself (the quality controller): the same path,
-        checks and log lines as a person's control request from ``source``."""
+        checks and log lines as a person's control request from ``source``. Returns the
+        request's seq (its result carries it), None when it asks nothing."""
         if upscaler is None and scale is None and frame_generation is None:
-            return
+            return None
         self._auto_seq += 1
         message = ControlMessage(
             type="control",
@@ -212,6 +214,7 @@ class InputRouter:
             frame_generation=frame_generation,
         )
         self._control(source, message)
+        return self._auto_seq
 
     def _refuse_bad_control(self, source: str, payload: bytes, reason: str) -> None:
         """A control request that failed validation still gets an answer, with its seq."""

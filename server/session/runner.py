@@ -133,7 +133,7 @@ class StreamingSession:
         self.quality: SessionQuality = session_quality(
             settings, display, self.router, self.monitor, self.stream_state, registry
         )
-        self.router.on_control_applied = self.quality.control_applied
+        self.router.on_control_outcome = self.quality.control_outcome
         self._on_upscaler_set = on_upscaler_set
         self._on_scale_request = on_scale_request
         self.sound: SoundSource = sound if sound is not None else GameSounds()

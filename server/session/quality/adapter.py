@@ -100,28 +100,35 @@ class SessionQuality:
         enabled: bool = True,
         host: HostLoad | None = None,
         registry: CollectorRegistry | None = None,
+        unavailable: str | None = None,
     ) -> None:
         self.controller = controller
         self.router = router
         self.monitor = monitor
         self.enabled = enabled and controller is not None
         # Why auto cannot run here (no figures for the method, an unknown start).
-        self.unavailable: str | None = None
+        self.unavailable = unavailable
         self.scene = SceneTracker()
         self.host = host if host is not None else HostLoad()
         self._state = stream_state
         self._metrics = QualityMetrics(registry) if registry is not None else None
         self.decisions: list[Decision] = []
+        self._pending: dict[int, Decision] = {}  # our requests' seq -> what they asked
+        self._sending: Decision | None = None
         self._publish()
 
     def frame(self, meta: FrameMeta) -> None:
         self.scene.frame(meta, time.monotonic())
 
-    def control_applied(self, result: ControlResult) -> None:
-        """An accepted control request: its goal fields change the controller's goal,
-        ``quality`` turns it on or off, and a person's upscaler, scale or frame
-        generation is pinned (``quality: "auto"`` lets go of every pin)."""
+    def control_outcome(self, result: ControlResult) -> None:
+        """Every control result. Our own: a refused one is rolled back. A person's
+        accepted one: its goal fields change the controller's goal, ``quality`` turns it
+        on or off, and an upscaler, scale or frame generation is pinned (``quality:
+        "auto"`` lets go of every pin)."""
         if result.source == AUTO_SOURCE:
+            self._own_outcome(result)
+            return
+        if not result.accepted:
             return
         if self.controller is None:
             if result.requested.get("quality") == "auto":
@@ -152,6 +159,19 @@ class SessionQuality:
                     result.source,
                 )
         self._publish()
+
+    def _own_outcome(self, result: ControlResult) -> None:
+        decision = self._pending.pop(result.seq, None)
+        if decision is None and self._sending is not None:
+            decision, self._sending = self._sending, None
+        if decision is None or result.accepted or self.controller is None:
+            return
+        # The worker (or the router) refused part of it: what went through before the
+        # refusal (the game's scale and frame generation) is set back too.
+        log.warning("quality: %s refused (%s); back to %s", decision.setting.describe(),
+                    result.reason, decision.previous.describe())  # fmt: skip
+        self.controller.refused(decision, result.reason or "refused")
+        self._send(decision.previous, decision.setting)
 
     def _set_goal(self, req: Mapping[str, object], source: str) -> None:
         assert self.controller is not None
@@ -205,8 +225,18 @@ class SessionQuality:
     def _apply(self, decision: Decision) -> None:
         log.info("%s", decision.log_line())
         self.decisions.append(decision)
-        new, old = decision.setting, decision.previous
-        self.router.apply_setting(
+        # A request refused at once (by the router) is answered inside the send.
+        self._sending = decision
+        seq = self._send(decision.setting, decision.previous)
+        answered = self._sending is None
+        self._sending = None
+        if seq is not None and not answered:
+            self._pending[seq] = decision
+            while len(self._pending) > 16:  # answers that never came
+                self._pending.pop(next(iter(self._pending)))
+
+    def _send(self, new: Setting, old: Setting) -> int | None:
+        return self.router.apply_setting(
             AUTO_SOURCE,
             upscaler=new.method if new.method != old.method else None,
             scale=new.scale if abs(new.scale - old.scale) > 1e-6 else None,
@@ -258,9 +288,14 @@ def session_quality(
     if controller is None and enabled:
         log.warning("quality: auto unavailable, the settings stay fixed: %s", why)
     adapter = SessionQuality(
-        controller, router, monitor, stream_state, enabled=enabled, registry=registry
+        controller,
+        router,
+        monitor,
+        stream_state,
+        enabled=enabled,
+        registry=registry,
+        unavailable=why,
     )
-    adapter.unavailable = why
     if adapter.enabled and controller is not None:
         goal = controller.goal
         log.info(

@@ -118,7 +118,7 @@ class Measurement:
 class Decision:
     setting: Setting
     previous: Setting
-    direction: Literal["down", "up", "back"]
+    direction: Literal["down", "up", "back", "goal"]
     reason: str
     expected_psnr_db: float
     predicted: StageTimes
@@ -208,6 +208,17 @@ class QualityController:
     def unpin(self) -> None:
         self._pins = _Pins()
 
+    def refused(self, decision: Decision, why: str) -> None:
+        """A switch did not go through (the worker refused the method): the setting is
+        what it was, and the refused one is not asked for again for a while."""
+        block = self._blocked.get(decision.setting)
+        backoff = BLOCK_S if block is None else min(BLOCK_MAX_S, block.backoff_s * 2)
+        until = (self.state.last_change_at or 0.0) + backoff
+        self._blocked[decision.setting] = _Block(until, backoff)
+        self._last_up = None
+        self.state.setting = decision.previous
+        self.state.reason = f"{decision.setting.describe()} refused: {why}"
+
     # -- judging ---------------------------------------------------------------------
 
     def update(self, m: Measurement) -> Decision | None:
@@ -222,6 +233,8 @@ class QualityController:
         self.model.learn(current, p50, p95)
         self.state.expected_psnr_db = self.model.expected_psnr(current, m.scene)
         self.state.headroom_cores = _idle(m)
+        if not self._allowed(current):
+            return self._conform(m)  # a new goal or pin applies at once, warm or not
         if m.now - self._first_at < WARMUP_S:
             return None  # the first seconds are start-up: kernels, caches, a cold encoder
         miss = self._miss(m, p50)
@@ -232,9 +245,72 @@ class QualityController:
             self._misses = 0
         if miss is not None and self._misses >= DOWN_CHECKS:
             return self._down(m, miss, p50)
-        if miss is None and self._quiet_for(m.now) >= UP_HOLD_S:
+        if miss is None and self._holding(m) and self._quiet_for(m.now) >= UP_HOLD_S:
             return self._up(m)
         return None
+
+    def _holding(self, m: Measurement) -> bool:
+        """A measured rate at the target: no step up on a window that says nothing."""
+        return (
+            m.frames >= MIN_FRAMES
+            and math.isfinite(m.fps)
+            and m.fps >= self._judged_fps() * HOLD_FRACTION
+        )
+
+    def _allowed(self, setting: Setting) -> bool:
+        return any(
+            c.method == setting.method
+            and abs(c.scale - setting.scale) < 1e-6
+            and c.frame_generation == setting.frame_generation
+            for c in self._candidates()
+        ) or self._within_goal(setting)
+
+    def _within_goal(self, setting: Setting) -> bool:
+        """An off-ladder scale (the start's 2.667, say) is fine inside the goal's bounds."""
+        g, p = self.goal, self._pins
+        methods_ok = (not g.methods or setting.method in g.methods) and setting.method in set(
+            self.model.methods()
+        )
+        if p.method is not None:
+            methods_ok = setting.method == p.method
+        if not self.limits.temporal and _is_temporal(setting.method):
+            methods_ok = False
+        if p.scale is not None or not self.limits.scale:
+            scale_ok = True
+        else:
+            scale_ok = g.min_scale - 1e-6 <= setting.scale <= g.max_scale + 1e-6
+        fg_ok = (
+            setting.frame_generation == p.frame_generation
+            if p.frame_generation is not None
+            else (
+                not setting.frame_generation
+                or (g.frame_generation and self.limits.frame_generation)
+            )
+        )
+        return methods_ok and scale_ok and fg_ok
+
+    def _conform(self, m: Measurement) -> Decision | None:
+        """The goal changed under the current setting (another method list, bounds, a
+        pin): the best allowed setting predicted to cost no more CPU than this one."""
+        current = self.state.setting
+        budget = 1000.0 / self.goal.target_fps
+        here_cpu = self.model.predict(current).cpu_cores(self.goal.target_fps)
+        best: tuple[float, Setting] | None = None
+        cheapest: tuple[float, Setting] | None = None
+        for cand in self._candidates():
+            times = self.model.predict(cand)
+            cpu = times.cpu_cores(self.goal.target_fps)
+            if cheapest is None or cpu < cheapest[0]:
+                cheapest = (cpu, cand)
+            if cpu > here_cpu * 1.05 or any(times.p50[s] > budget * DOWN_MARGIN for s in STAGES):
+                continue
+            quality = self.model.expected_psnr(cand, m.scene)
+            if best is None or quality > best[0]:
+                best = (quality, cand)
+        chosen = best[1] if best is not None else (cheapest[1] if cheapest is not None else None)
+        if chosen is None or chosen == current:
+            return None
+        return self._switch(m, chosen, "goal", "the goal allows this setting no more")
 
     def _quiet_for(self, now: float) -> float:
         marks = (self._last_miss_at, self.state.last_change_at, self._first_at)
@@ -381,7 +457,11 @@ class QualityController:
         return self._switch(m, cand, "up", reason)
 
     def _switch(
-        self, m: Measurement, setting: Setting, direction: Literal["down", "up", "back"], why: str
+        self,
+        m: Measurement,
+        setting: Setting,
+        direction: Literal["down", "up", "back", "goal"],
+        why: str,
     ) -> Decision:
         previous = self.state.setting
         if direction != "up":

@@ -1,0 +1,97 @@
+"""A simulated host for the quality controller: sessions whose stages cost CPU time that
+depends on their setting, sharing a number of cores (and a hog that takes some).
+
+When the sessions (and the hog) ask more CPU than the host has, every stage stretches
+by the same factor and the frame rate falls by it: the first-order behaviour of
+processes sharing cores under a fair scheduler. The true costs are the simulator's
+own, not the controller's table, so the controller has to learn them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from server.session.quality.controller import Measurement, QualityController
+from server.session.quality.model import Setting
+from server.session.quality.scene import SceneClass
+
+DISPLAY_PIXELS = 1280 * 720
+# What a stage costs on the simulated host, ms per frame, idle.
+UPSCALE_MS = {
+    "bilinear": 2.5,
+    "bicubic": 3.0,
+    "lanczos2": 18.0,
+    "easu": 6.0,
+    "easu_rcas": 6.5,
+    "temporal": 12.0,
+}
+
+
+def true_times(setting: Setting, temporal_ms: float | None = None) -> dict[str, float]:
+    render_px = DISPLAY_PIXELS / setting.scale**2
+    render = 6.0 + 22.0 * render_px / (480 * 270)  # a fixed part plus a per-pixel part
+    upscale = UPSCALE_MS[setting.method]
+    if setting.method == "temporal" and temporal_ms is not None:
+        upscale = temporal_ms
+    if setting.frame_generation:
+        render *= 0.6
+        upscale += 2.0
+    return {"render": render, "upscale": upscale, "encode": 10.0}
+
+
+@dataclass
+class SimulatedHost:
+    cores: float
+    controllers: list[QualityController]
+    fps: float = 30.0
+    scene: SceneClass = "slow"
+    hog_cores: Callable[[float], float] = lambda t: 0.0
+    temporal_ms: float | None = None
+    step_s: float = 0.5
+    now: float = 0.0
+    log: list[tuple[float, int, str]] = field(default_factory=list)
+    delivered: list[list[tuple[float, float]]] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self.delivered = [[] for _ in self.controllers]
+
+    def run(self, seconds: float) -> None:
+        end = self.now + seconds
+        while self.now < end:
+            self.step()
+
+    def step(self) -> None:
+        times = [true_times(c.setting, self.temporal_ms) for c in self.controllers]
+        demand = sum(sum(t.values()) * self.fps / 1000.0 for t in times)
+        demand += self.hog_cores(self.now)
+        stretch = max(1.0, demand / self.cores)
+        busy = min(self.cores, demand)
+        for i, (controller, t) in enumerate(zip(self.controllers, times, strict=True)):
+            fps = self.fps / stretch
+            # A stage whose own median passes the frame period caps the rate too.
+            slowest = max(t.values()) * stretch
+            fps = min(fps, 1000.0 / slowest)
+            self.delivered[i].append((self.now, fps))
+            measurement = Measurement(
+                now=self.now,
+                fps=fps,
+                frames=int(fps * 2),
+                p50={k: v * stretch for k, v in t.items()},
+                p95={k: v * stretch * 1.3 for k, v in t.items()},
+                scene=self.scene,
+                host_busy_cores=busy,
+                host_cores=self.cores,
+            )
+            decision = controller.update(measurement)
+            if decision is not None:
+                self.log.append((self.now, i, decision.log_line()))
+        self.now += self.step_s
+
+    def fps_between(self, session: int, start: float, end: float) -> list[float]:
+        return [fps for t, fps in self.delivered[session] if start <= t < end]
+
+    def switches_between(self, start: float, end: float, session: int | None = None) -> int:
+        return sum(
+            1 for t, i, _ in self.log if start <= t < end and (session is None or i == session)
+        )

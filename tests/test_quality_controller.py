@@ -1,0 +1,294 @@
+"""The quality controller (server/session/quality): the table it rests on, its model,
+and its decisions on a simulated host (tests/quality_sim.py) and on hard inputs."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+
+from server.session.quality.controller import (
+    Measurement,
+    QualityController,
+    QualityGoal,
+    SourceLimits,
+)
+from server.session.quality.figures import (
+    FIGURES_PATH,
+    FiguresError,
+    derive_from_reports,
+    load_figures,
+    parse_figures,
+)
+from server.session.quality.model import QualityModel, Setting
+from tests.quality_sim import DISPLAY_PIXELS, SimulatedHost
+
+START = Setting("bilinear", 2.667)
+
+
+def controller(
+    start: Setting = START, goal: QualityGoal | None = None, limits: SourceLimits | None = None
+) -> QualityController:
+    return QualityController(
+        QualityModel(load_figures(), DISPLAY_PIXELS),
+        goal or QualityGoal(target_fps=30.0),
+        start,
+        limits or SourceLimits(),
+    )
+
+
+# -- the table -----------------------------------------------------------------------
+
+
+def test_the_table_is_what_the_reports_say() -> None:
+    """figures.json is derived, not typed in: regenerate it when a report changes."""
+    assert json.loads(FIGURES_PATH.read_text()) == derive_from_reports(), (
+        "server/session/quality/figures.json is stale: python -m server.session.quality.figures"
+    )
+
+
+@pytest.mark.parametrize(
+    "damage",
+    [
+        lambda t: t.pop("methods"),
+        lambda t: t["methods"]["bilinear"]["median_ms"].pop(),
+        lambda t: t["methods"]["bilinear"]["psnr_db"]["static"].__setitem__(0, float("nan")),
+        lambda t: t["methods"]["bilinear"].__setitem__("scales", [2.0, 1.5, 3.0]),
+        lambda t: t.__setitem__("methods", {}),
+    ],
+)
+def test_a_damaged_table_is_refused_with_a_reason(damage: object) -> None:
+    table = json.loads(FIGURES_PATH.read_text())
+    damage(table)  # type: ignore[operator]
+    with pytest.raises(FiguresError):
+        parse_figures(table)
+
+
+# -- the model -----------------------------------------------------------------------
+
+
+def test_the_expected_picture_follows_the_measurements() -> None:
+    model = QualityModel(load_figures(), DISPLAY_PIXELS)
+    for scene in ("still", "slow", "fast", "cuts", "unknown"):
+        # Less upscaling looks better; temporal beats bilinear at the same scale.
+        assert model.expected_psnr(Setting("temporal", 2.0), scene) > model.expected_psnr(
+            Setting("temporal", 3.0), scene
+        )
+        assert model.expected_psnr(Setting("temporal", 2.0), scene) > model.expected_psnr(
+            Setting("bilinear", 2.0), scene
+        )
+    # Predicting every other frame costs picture where things move, nothing on a still one.
+    slow_loss = model.expected_psnr(Setting("bilinear", 2.0), "slow") - model.expected_psnr(
+        Setting("bilinear", 2.0, True), "slow"
+    )
+    still_loss = model.expected_psnr(Setting("bilinear", 2.0), "still") - model.expected_psnr(
+        Setting("bilinear", 2.0, True), "still"
+    )
+    assert slow_loss > 0.05
+    assert abs(still_loss) < 0.01
+    # The lead of temporal is largest on a still camera (the evaluation's static scene).
+    lead = {
+        scene: model.expected_psnr(Setting("temporal", 2.0), scene)
+        - model.expected_psnr(Setting("easu_rcas", 2.0), scene)
+        for scene in ("still", "fast")
+    }
+    assert lead["still"] > lead["fast"]
+
+
+def test_the_model_learns_the_render_line_and_each_method_ratio() -> None:
+    model = QualityModel(load_figures(), DISPLAY_PIXELS)
+    # Renders of 10 + 20 ms per 129600 px, measured at two scales.
+    for scale in (2.0, 3.0):
+        px = DISPLAY_PIXELS / scale**2
+        ms = 10.0 + 20.0 * px / 129600
+        for _ in range(6):
+            model.learn(Setting("bilinear", scale), {"render": ms}, {"render": ms * 1.2})
+    px4 = DISPLAY_PIXELS / 16
+    assert model.predict(Setting("bilinear", 4.0)).p50["render"] == pytest.approx(
+        10.0 + 20.0 * px4 / 129600, rel=0.02
+    )
+    # The upscaler ran 3x slower than the table: a method not run yet is predicted slower
+    # too, never faster than the table.
+    table_ms, _ = model.table_upscale_ms("easu", 2.0)
+    for _ in range(6):
+        model.learn(Setting("easu", 2.0), {"upscale": 3 * table_ms}, {"upscale": 4 * table_ms})
+    assert model.predict(Setting("easu", 2.0)).p50["upscale"] == pytest.approx(3 * table_ms)
+    temporal_table, _ = model.table_upscale_ms("temporal", 2.0)
+    assert model.predict(Setting("temporal", 2.0)).p50["upscale"] == pytest.approx(
+        3 * temporal_table
+    )
+
+
+# -- decisions on a simulated host -----------------------------------------------------
+
+
+def test_an_idle_host_gets_the_better_picture_and_then_keeps_it() -> None:
+    c = controller()
+    host = SimulatedHost(cores=2.0, controllers=[c])
+    host.run(90.0)
+    assert c.setting.method == "temporal", host.log
+    assert c.setting.scale < START.scale
+    # It holds the rate all along, and in steady state it stops switching.
+    assert min(host.fps_between(0, 0.0, 90.0)) >= 0.9 * 30.0, host.log
+    assert host.switches_between(45.0, 90.0) == 0, host.log
+
+
+def test_a_host_that_cannot_hold_the_rate_is_relieved_within_seconds() -> None:
+    """Two sessions start on a setting too costly for two cores: both step down and the
+    rate is back above 90 % a few seconds after the first judgement."""
+    costly = Setting("temporal", 1.5)
+    sessions = [controller(costly), controller(costly)]
+    host = SimulatedHost(cores=2.0, controllers=sessions)
+    host.run(60.0)
+    for i in range(2):
+        assert min(host.fps_between(i, 12.0, 60.0)) >= 0.9 * 30.0, host.log
+        assert sessions[i].setting != costly
+
+
+def test_a_hog_is_answered_within_two_seconds_and_its_end_within_a_minute() -> None:
+    c = controller()
+    hog = (40.0, 80.0)
+    host = SimulatedHost(
+        cores=2.0, controllers=[c], hog_cores=lambda t: 1.0 if hog[0] <= t < hog[1] else 0.0
+    )
+    host.run(40.0)
+    before = c.model.expected_psnr(c.setting, "slow")
+    host.run(40.0)
+    # The first 0.5 s window sees the hog; two missed checks later the step down applies.
+    assert min(host.fps_between(0, hog[0] + 2.0, hog[1])) >= 0.9 * 30.0, host.log
+    during = c.model.expected_psnr(c.setting, "slow")
+    assert during < before
+    host.run(60.0)
+    assert c.model.expected_psnr(c.setting, "slow") > during, host.log
+    # A few switches a minute at most, hog or not.
+    assert host.switches_between(0.0, 180.0) <= 3 * 3, host.log
+
+
+def test_a_step_up_that_does_not_hold_goes_back_and_is_not_retried_at_once() -> None:
+    """Temporal costs far more on this host than the table says: tried once, it misses,
+    goes back, and the controller does not hunt."""
+    c = controller()
+    host = SimulatedHost(cores=2.0, controllers=[c], temporal_ms=70.0)
+    host.run(120.0)
+    assert c.setting.method != "temporal"
+    backs = [line for _, _, line in host.log if line.startswith("quality back")]
+    ups = [line for _, _, line in host.log if line.startswith("quality up") and "temporal" in line]
+    assert len(ups) <= 2, host.log
+    assert len(backs) == len(ups)
+    # The rate holds outside the probation windows.
+    assert sum(f < 27.0 for f in host.fps_between(0, 0.0, 120.0)) <= 10
+
+
+def test_a_host_that_cannot_hold_even_the_lowest_setting_says_so_once() -> None:
+    c = controller()
+    host = SimulatedHost(cores=0.5, controllers=[c])
+    host.run(60.0)
+    assert c.state.at_floor
+    assert "lowest setting" in c.state.reason
+    # It went to the cheapest once and stayed there.
+    assert host.switches_between(0.0, 60.0) <= 2, host.log
+    assert host.switches_between(20.0, 60.0) == 0, host.log
+
+
+def test_a_colour_only_source_only_changes_its_upscaler() -> None:
+    start = Setting("lanczos2", 2.0)
+    c = controller(start, limits=SourceLimits(scale=False, temporal=False, frame_generation=False))
+    host = SimulatedHost(cores=0.7, controllers=[c])
+    host.run(60.0)
+    assert host.log, "a costly method on a small host must step down"
+    assert c.setting.scale == 2.0
+    assert not c.setting.frame_generation
+    assert c.setting.method != "temporal"
+
+
+def test_resolution_preference_never_trades_the_starting_picture() -> None:
+    start = Setting("temporal", 2.0)
+    c = controller(start, goal=QualityGoal(target_fps=30.0, preference="resolution"))
+    host = SimulatedHost(cores=1.0, controllers=[c])
+    host.run(60.0)
+    floor = c.model.expected_psnr(start, "unknown")
+    for _, _, line in host.log:
+        assert "quality down" not in line or "temporal" in line, host.log
+    assert c.model.expected_psnr(c.setting, "unknown") >= floor - 0.05
+
+
+def test_a_pinned_field_stays_where_a_person_set_it() -> None:
+    c = controller()
+    c.pin(method="easu_rcas")
+    host = SimulatedHost(cores=2.0, controllers=[c])
+    host.run(60.0)
+    assert c.setting.method == "easu_rcas"
+    c.unpin()
+    host.run(30.0)
+    assert c.setting.method == "temporal", host.log
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        {"fps": math.nan},
+        {"fps": math.inf},
+        {"p50": {"render": math.nan, "upscale": -3.0, "encode": math.inf}},
+        {"p50": {}, "p95": {}},
+        {"p50": {"render": "x"}},  # a non-number where a number belongs
+        {"frames": 0, "fps": 0.0},
+    ],
+)
+def test_garbage_measurements_never_crash_nor_switch(bad: dict[str, object]) -> None:
+    c = controller()
+    base: dict[str, object] = {
+        "fps": 30.0,
+        "frames": 60,
+        "p50": {"render": 20.0, "upscale": 3.0, "encode": 10.0},
+        "p95": {"render": 25.0, "upscale": 4.0, "encode": 12.0},
+        "scene": "slow",
+        "host_busy_cores": 2.0,  # nothing idle: no reason to step up either
+        "host_cores": 2.0,
+    }
+    for t in range(40):
+        fields = base | bad
+        decision = c.update(Measurement(now=float(t) * 0.5, **fields))  # type: ignore[arg-type]
+        assert decision is None
+    assert c.setting == START
+
+
+def test_without_a_host_reading_a_step_up_adds_little_cpu() -> None:
+    c = controller()
+    host = SimulatedHost(cores=2.0, controllers=[c])
+    host.run(20.0)  # learn the costs first
+    before = c.model.predict(c.setting).cpu_cores(30.0)
+    for t in range(40):
+        decision = c.update(
+            Measurement(
+                now=host.now + t * 0.5,
+                fps=30.0,
+                frames=60,
+                p50={"render": 20.0, "upscale": 3.0, "encode": 10.0},
+                p95={"render": 25.0, "upscale": 4.0, "encode": 12.0},
+                scene="slow",
+                host_busy_cores=math.nan,
+                host_cores=2.0,
+            )
+        )
+        if decision is not None and decision.direction == "up":
+            assert decision.predicted.cpu_cores(30.0) <= before * 1.1 + 1e-9
+
+
+def test_a_goal_out_of_bounds_is_refused() -> None:
+    with pytest.raises(ValueError, match="min_scale"):
+        QualityGoal(target_fps=30.0, min_scale=3.0, max_scale=2.0)
+    with pytest.raises(ValueError, match="target_fps"):
+        QualityGoal(target_fps=math.nan)
+    with pytest.raises(ValueError, match="preference"):
+        QualityGoal(target_fps=30.0, preference="speed")  # type: ignore[arg-type]
+
+
+def test_the_goal_bounds_hold() -> None:
+    goal = QualityGoal(target_fps=30.0, min_scale=2.5, max_scale=3.0, methods=("easu",))
+    c = controller(goal=goal)
+    host = SimulatedHost(cores=2.0, controllers=[c])
+    host.run(90.0)
+    assert host.log
+    assert c.setting.method == "easu"
+    assert 2.5 <= c.setting.scale <= 3.0
