@@ -109,18 +109,36 @@ def test_the_model_learns_the_render_line_and_each_method_ratio() -> None:
         10.0 + 20.0 * px4 / 129600, rel=0.02
     )
     # The upscaler ran 3x slower than the table: a method not run yet is predicted slower
-    # too, never faster than the table.
+    # too (as slow as the host's render shows it is, if that is slower), never faster
+    # than the table.
     table_ms, _ = model.table_upscale_ms("easu", 2.0)
     for _ in range(6):
         model.learn(Setting("easu", 2.0), {"upscale": 3 * table_ms}, {"upscale": 4 * table_ms})
     assert model.predict(Setting("easu", 2.0)).p50["upscale"] == pytest.approx(3 * table_ms)
     temporal_table, _ = model.table_upscale_ms("temporal", 2.0)
+    slowdown = max(3.0, model.host_slowdown())
+    assert model.host_slowdown() > 1.0
     assert model.predict(Setting("temporal", 2.0)).p50["upscale"] == pytest.approx(
-        3 * temporal_table
+        slowdown * temporal_table
     )
 
 
 # -- decisions on a simulated host -----------------------------------------------------
+
+
+def test_after_a_transient_the_picture_comes_straight_back() -> None:
+    """A hog forces several steps down; once it ends, the setting that held before it
+    is taken again in one step, not a ladder step every few seconds."""
+    c = controller()
+    host = SimulatedHost(
+        cores=2.0, controllers=[c], hog_cores=lambda t: 1.5 if 40.0 <= t < 60.0 else 0.0
+    )
+    host.run(40.0)
+    before = c.setting
+    host.run(20.0)
+    assert c.setting != before
+    host.run(12.0)
+    assert c.setting.scale <= before.scale + 1e-6, host.log
 
 
 def test_an_idle_host_gets_the_better_picture_and_then_keeps_it() -> None:

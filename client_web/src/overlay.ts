@@ -39,6 +39,7 @@ export class Overlay {
 			`frames recv ${s.framesReceived}  dec ${s.framesDecoded}  shown ${s.framesPresented}  dropped ${s.dropped}`,
 			`lost ${s.framesLost}  skipped groups ${s.groupsSkipped}  late ${s.late}  freezes ${s.freezes} (${(s.freezeMs / 1000).toFixed(1)} s)`,
 			`keyframes asked ${s.recovery.keyframeRequests}${s.recovery.waiting ? ` (waiting: ${s.recovery.reason})` : ""}  recovered ${s.recovery.recoveries}${s.recovery.lastRecoveryMs === undefined ? "" : ` last ${s.recovery.lastRecoveryMs.toFixed(0)} ms`}`,
+			quality(s.quality),
 			`frame id ${s.lastPresentedFrameId ?? "-"}  inputs ${s.inputsSent}  feedback ${s.feedbackSent}  recv ${(s.bytesReceived / 1e6).toFixed(1)} MB`,
 			s.audio.enabled
 				? `audio ${s.audio.running ? (s.audio.muted ? "muted" : `on ${Math.round(s.audio.volume * 100)}%`) : "click to start"}  packets ${s.audio.packets}  buffered ${s.audio.bufferedMs.toFixed(0)} ms  underrun ${s.audio.underrunFrames}  concealed ${s.audio.concealedFrames}`
@@ -57,6 +58,14 @@ export class Overlay {
 		if (s.errors.length > 0) lines.push("", `last error: ${s.errors[s.errors.length - 1]}`);
 		this.#element.textContent = lines.join("\n");
 	}
+}
+
+/** "quality auto: temporal at 2x (+0.31 dB expected ...)": the setting and why. */
+function quality(q: Stats["quality"]): string {
+	if (!q?.mode) return "quality -";
+	const fg = q.frameGeneration ? ", frame generation" : "";
+	const scale = q.scale === undefined ? "" : ` at ${q.scale}x`;
+	return `quality ${q.mode}: ${q.upscaler ?? "-"}${scale}${fg}${q.reason ? ` (${q.reason})` : ""}`;
 }
 
 function fmt(value: number | undefined): string {

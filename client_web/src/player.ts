@@ -46,6 +46,7 @@ function main(): void {
 		codec: undefined as string | undefined,
 		lastPresentedFrameId: undefined as number | undefined,
 		lastPresentedPtsUs: undefined as number | undefined,
+		quality: undefined as Stats["quality"],
 	};
 	// Whether each of the last PREDICTED_WINDOW presented frames was predicted.
 	const PREDICTED_WINDOW = 120;
@@ -103,6 +104,13 @@ function main(): void {
 	timing.onPresented = (record, presentUs) => {
 		inputToPhoton.presented(record, presentUs);
 		controls.follow(record.upscaler, record.scale, record.frame_generation, record.cache_policy, record.source);
+		state.quality = {
+			mode: record.quality,
+			upscaler: record.upscaler,
+			scale: record.scale,
+			frameGeneration: record.frame_generation,
+			reason: record.quality_reason,
+		};
 		predictedFlags.push(record.predicted === true);
 		if (predictedFlags.length > PREDICTED_WINDOW) predictedFlags.shift();
 	};
@@ -188,6 +196,7 @@ function main(): void {
 		width: renderer.width,
 		height: renderer.height,
 		predictedShare: predictedFlags.length ? predictedFlags.filter(Boolean).length / predictedFlags.length : 0,
+		quality: state.quality,
 		// Feedback goes the same way but is not an input: counted apart (feedbackSent).
 		inputsSent: publisher.sent - state.feedbackSent,
 		inputPath: publisher.path,

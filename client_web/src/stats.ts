@@ -144,6 +144,8 @@ export interface Stats {
 	lastPresentedPtsUs?: number;
 	/** Share of the last presented frames the server predicted (frame generation), 0..1. */
 	predictedShare: number;
+	/** What the server runs and why (adaptive quality), from the last presented frame's record. */
+	quality?: { mode?: string; upscaler?: string; scale?: number; frameGeneration?: boolean; reason?: string };
 	inputsSent: number;
 	inputPath: string;
 	inputSubscribers: number;

@@ -23,6 +23,9 @@ export interface TimingRecord {
 	cache_policy?: string;
 	/** "game" (the built-in renderer) or "x11" (a captured application: colour only). */
 	source?: string;
+	/** Adaptive quality: "auto" or "fixed", and why the current setting was chosen. */
+	quality?: string;
+	quality_reason?: string;
 	/** Wall-clock microseconds since the epoch, by stage label. */
 	stamps: Record<string, number>;
 }

@@ -14,6 +14,8 @@ BENCHMARKS: dict[str, str] = {
     "encode": "x264 + CMAF per frame: ms, bytes, PSNR, keyframe cost, mux delay",
     "latency": "render_end -> client_present per stage, real stack + headless Chromium",
     "serve": "upcast serve with N sessions: fps each holds, before and after a worker is killed",
+    "adaptive": "adaptive quality against fixed settings, 1-N sessions, a CPU hog mid-run: "
+    "viewer fps held, switches, the table's expected picture",
     "compile_start": "upscaler compile=True at a worker start: inductor cache cold and warm",
     "reframe": "layer caching on the neural upscaler: policies, levels, speedup against FLIP",
     "adversary": "relay under attack scenarios: good viewers' fps, relay CPU and RSS, refusals",

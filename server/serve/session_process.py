@@ -43,6 +43,10 @@ def write_status(path: Path, state: str, live: LiveSession | None = None) -> Non
             frames=status.frames,
             upscaler=status.upscaler,
             scale=status.scale,
+            frame_generation=status.frame_generation,
+            quality=status.quality,
+            quality_reason=status.quality_reason,
+            expected_psnr_db=status.expected_psnr_db,
             metrics_port=live.metrics_port,
         )
     tmp = path.with_suffix(".tmp")

@@ -34,6 +34,11 @@ class StatusReporter:
             scale=float(scale) if isinstance(scale, int | float) else None,
             frame_generation=fg if isinstance(fg := state.get("frame_generation"), bool) else None,
             cache_policy=cp if isinstance(cp := state.get("cache_policy"), str) else None,
+            quality=q if isinstance(q := state.get("quality"), str) else None,
+            quality_reason=r if isinstance(r := state.get("quality_reason"), str) else None,
+            expected_psnr_db=(
+                float(e) if isinstance(e := state.get("expected_psnr_db"), int | float) else None
+            ),
             fps=round(self.session.monitor.snapshot().fps, 2),
             frames=self.session.monitor.frames,
             last_control=self.last_control,

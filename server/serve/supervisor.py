@@ -234,6 +234,12 @@ class Supervisor:
                     "frames_at": status.get("updated"),
                     "upscaler": status.get("upscaler", s.config.upscaler),
                     "scale": status.get("scale", round(s.config.scale, 3)),
+                    "frame_generation": status.get("frame_generation"),
+                    # Adaptive quality: auto or fixed, why this setting, and the picture
+                    # the speed-against-error table expects of it.
+                    "quality": status.get("quality"),
+                    "quality_reason": status.get("quality_reason"),
+                    "expected_psnr_db": status.get("expected_psnr_db"),
                     "target_fps": s.config.fps,
                     "metrics_port": status.get("metrics_port", 0),
                 }

@@ -106,6 +106,17 @@ class StatusRecord(BaseModel):
         description="the layer-cache policy the worker runs, as configured at start or "
         "reported at the last switch (null: the method has no cache)",
     )
+    quality: str | None = Field(
+        default=None, description="auto (adaptive quality chooses) or fixed"
+    )
+    quality_reason: str | None = Field(
+        default=None, description="why adaptive quality chose the current setting"
+    )
+    expected_psnr_db: float | None = Field(
+        default=None,
+        description="PSNR the current setting is expected to give against the game's "
+        "ground truth (the speed-against-error table; a model figure, not a measurement)",
+    )
     fps: float = Field(description="frames per second the session publishes (rolling)")
     frames: int = Field(description="frames published since the session started")
     last_control: ControlResult | None = Field(

@@ -14,7 +14,8 @@ In the manner of libwebrtc's CPU adaptation and a game engine's dynamic resoluti
   session's CPU within what the frame rate shows it gets (``fps / target`` of what
   it needs now, times ``DOWN_MARGIN``). When none fits, the cheapest.
 - **Up carefully.** After ``UP_HOLD_S`` without a miss, one small step (the render
-  scale by at most one ladder step, and/or another method or frame generation) to a
+  scale by at most one ladder step, or straight back to the scale that held before the
+  last step down, and/or another method or frame generation) to a
   setting predicted to look at least ``UP_MIN_GAIN_DB`` better, with every stage's
   median within ``UP_MARGIN`` of its budget and its extra CPU inside the host's idle cores
   less a ``HOST_RESERVE`` (on a host shared by sessions, the idle cores are what
@@ -59,7 +60,7 @@ HOST_BUSY_FRACTION = 0.85  # the host counts as busy from this share of its core
 DOWN_CHECKS = 2
 DOWN_MARGIN = 0.85
 UP_MARGIN = 0.75
-UP_HOLD_S = 6.0
+UP_HOLD_S = 4.0
 UP_MIN_GAIN_DB = 0.2
 RESET_COST_DB = 0.15
 HOST_RESERVE = 0.1  # of the host's cores, never planned for
@@ -173,6 +174,7 @@ class QualityController:
         self._pins = _Pins()
         self._said_floor = False
         self._first_at: float | None = None
+        self._last_good: Setting | None = None  # what held before the last step down
 
     # -- the control API's side ------------------------------------------------------
 
@@ -436,7 +438,7 @@ class QualityController:
         for cand in self._candidates():
             if cand == current or self._blocked_now(cand, m.now):
                 continue
-            if abs(cand.scale - current.scale) > SCALE_STEP + 1e-6:
+            if abs(cand.scale - current.scale) > self._up_reach(current) + 1e-6:
                 continue
             times = self.model.predict(cand)
             if any(times.p50[s] > budget * UP_MARGIN for s in STAGES):
@@ -456,6 +458,15 @@ class QualityController:
         self._last_up = (m.now, current)
         return self._switch(m, cand, "up", reason)
 
+    def _up_reach(self, current: Setting) -> float:
+        """How far one step up may move the scale: one ladder step, or straight back to
+        the setting that held before the last step down (the last known good, as GCC
+        returns to the rate before a transient loss)."""
+        good = self._last_good
+        if good is None or good.scale >= current.scale:
+            return SCALE_STEP
+        return max(SCALE_STEP, current.scale - good.scale)
+
     def _switch(
         self,
         m: Measurement,
@@ -466,6 +477,14 @@ class QualityController:
         previous = self.state.setting
         if direction != "up":
             self._last_up = None
+        if direction == "down" and self._last_good is None:
+            self._last_good = previous
+        elif (
+            direction == "up"
+            and self._last_good is not None
+            and (setting.scale <= self._last_good.scale)
+        ):
+            self._last_good = None  # back where it was: the next climb is careful again
         self.state = replace(
             self.state,
             setting=setting,

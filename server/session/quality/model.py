@@ -19,8 +19,9 @@ alone:
   draw, and the render stage is not learned from (it mixes the two);
 - *upscale*: the table's time for the method and scale (at this display size),
   times a ratio learned online from the measured upscale stage: per method while it
-  runs, and for one that has not run yet the last measured ratio of any method (the
-  host's speed and load), never under 1; frame generation adds half a prediction;
+  runs, and for one that has not run yet the larger of the last measured ratio of any
+  method and the host's slowdown (the render measured against the table's render),
+  never under 1; frame generation adds half a prediction;
 - *encode*: as measured (it depends on the display size, which stays).
 
 The CPU a setting takes is the sum of the stage medians at the target rate, in
@@ -37,6 +38,7 @@ from server.session.quality.figures import SpeedErrorFigures
 from server.session.quality.scene import SCENES_OF_CLASS, SceneClass
 
 SMOOTHING = 0.5  # weight of a new measurement in the learned figures
+MAX_SLOWDOWN = 4.0
 FIXED_SHARE = 0.3  # of a render measured at one scale only, taken as its fixed part
 DYNAMIC_DRAW_SHARE = 0.2  # a dynamic-only tick against a full render (moving objects)
 STAGES = ("render", "upscale", "encode")
@@ -189,7 +191,9 @@ class QualityModel:
             r50 *= (1.0 + DYNAMIC_DRAW_SHARE) / 2.0
         # A method not run yet: the host's slowdown seen on the others, but never faster
         # than the table (a cheap method running fast says little about a costly one).
-        ratio = lc.upscale_ratio.get(setting.method, max(1.0, lc.last_upscale_ratio or 1.0))
+        ratio = lc.upscale_ratio.get(
+            setting.method, max(1.0, lc.last_upscale_ratio or 1.0, self.host_slowdown())
+        )
         u50, u95 = self.table_upscale_ms(setting.method, setting.scale)
         u50 *= ratio
         u95 = u50 * lc.upscale_p95_over_p50 if lc.upscale_p95_over_p50 else u95 * ratio
@@ -203,6 +207,18 @@ class QualityModel:
             p50={"render": r50, "upscale": u50, "encode": e50},
             p95={"render": r95, "upscale": u95, "encode": e95},
         )
+
+    def host_slowdown(self) -> float:
+        """How much slower than the table's machine this host runs the stages now: the
+        render measured against the table's render time at the same size (both from the
+        idle machine's reports), within [1, MAX_SLOWDOWN]. The processes of a session
+        share cores, so a stage that has not run yet slows about as much as one that has."""
+        f = self.figures
+        slowest = 1.0
+        for scale, (p50, _) in self.learned.render_ms_at.items():
+            prior = f.render_ms * self.render_pixels(scale) / f.predict_pixels
+            slowest = max(slowest, p50 / prior)
+        return min(MAX_SLOWDOWN, slowest)
 
     def _render_ms(self, px: float) -> tuple[float, float]:
         """(p50, p95) of a full render of ``px`` pixels: a line through what was

@@ -1,0 +1,302 @@
+"""``upcast bench adaptive``: adaptive quality against fixed settings, 1 to N sessions,
+with a CPU hog taking a core for the middle third of each run.
+
+Each case runs the real serve path (``upcast serve`` as a subprocess: one relay, one
+process per session) with ``--quality auto`` or with one fixed setting, on the same
+scene, seed and schedule, one after the other. One moq-lite viewer on the relay counts
+every session's video frames; ``/sessions`` is read every second for the setting each
+session runs. Per session the report has:
+
+- the frame rate the viewer received, per one-second bin: mean, minimum, the share of
+  bins at 90 % of the target or more, and the mean before, during and after the hog;
+- how long after the hog started the rate was back at 90 % (two bins in a row), and
+  how long after it ended the setting stepped up again;
+- the settings it ran and for how long, the switches (each is one log line of the
+  session, counted from serve's log), and the picture the speed-against-error table
+  expects of them, weighted by time. That last figure is the table's (PSNR against the
+  game's ground truth, server/session/quality/figures.json), not a measurement of the
+  decoded stream.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import os
+import re
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import IO
+
+from server.bench.report import BenchReport
+from server.bench.serve import ROOT, FrameCounter, _poll_sessions, _wait_all_up
+from server.ops.process import stop_child
+from server.quic.moq_link import MoqLink, connect_moq
+from server.session.quality.figures import load_figures
+from server.session.quality.model import QualityModel, Setting
+
+HOLD = 0.9
+QUALITY_LINE = re.compile(
+    r"\[(?P<broadcast>[^\]]+)\] server\.session\.quality\.adapter: "
+    r"quality (?P<dir>up|down|back|goal):"
+)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--json", type=Path, required=True, help="report path")
+    parser.add_argument("--sessions", default="1,2,4", help="session counts, comma-separated")
+    parser.add_argument(
+        "--fixed",
+        default="fitted",
+        help="fixed settings to compare, comma-separated METHOD@SCALE (display / render);"
+        " 'fitted' is the machine-fitted default start (bilinear at the fitted render size)",
+    )
+    parser.add_argument("--display-size", default="1280x720")
+    parser.add_argument("--fps", type=float, default=30.0)
+    parser.add_argument("--duration", type=float, default=45.0, help="seconds measured per case")
+    parser.add_argument("--warmup", type=float, default=8.0, help="seconds after all are up")
+    parser.add_argument(
+        "--hog", action=argparse.BooleanOptionalAction, default=True,
+        help="a busy loop takes one core for the middle third of each case (default: on)",
+    )  # fmt: skip
+    parser.add_argument("--port", type=int, default=4470, help="relay port (HTTP side: +1)")
+
+
+@dataclass(frozen=True)
+class Case:
+    sessions: int
+    mode: str  # "auto" or "fixed"
+    setting: Setting | None  # the fixed one; None: the fitted start
+
+    @property
+    def name(self) -> str:
+        what = "auto" if self.mode == "auto" else (
+            "fixed fitted" if self.setting is None else f"fixed {self.setting.describe()}"
+        )  # fmt: skip
+        return f"{self.sessions} sessions, {what}"
+
+
+def _size_for(display: str, scale: float) -> str:
+    w, h = (int(v) for v in display.lower().split("x"))
+    return f"{max(2, round(w / scale / 2) * 2)}x{max(2, round(h / scale / 2) * 2)}"
+
+
+def _parse_fixed(text: str) -> list[Setting | None]:
+    out: list[Setting | None] = []
+    for item in (t.strip() for t in text.split(",") if t.strip()):
+        if item == "fitted":
+            out.append(None)
+            continue
+        method, _, scale = item.partition("@")
+        out.append(Setting(method, float(scale)))
+    return out
+
+
+def _bins(arrivals: list[float], start: float, end: float) -> list[float]:
+    n = max(1, int(end - start))
+    counts = [0] * n
+    for t in arrivals:
+        if t < start:
+            continue  # int() rounds toward zero: -0.5 s would land in the first bin
+        i = int(t - start)
+        if i < n:
+            counts[i] += 1
+    return [float(c) for c in counts]
+
+
+def _back_at(bins: list[float], start_bin: int, target: float) -> float | None:
+    """Seconds from ``start_bin`` until two bins in a row hold 90 % of the target."""
+    for i in range(start_bin, len(bins) - 1):
+        if bins[i] >= HOLD * target and bins[i + 1] >= HOLD * target:
+            return float(i - start_bin)
+    return None
+
+
+def _mean(values: list[float]) -> float:
+    return sum(values) / len(values) if values else 0.0
+
+
+async def _run_case(case: Case, args: argparse.Namespace, report: BenchReport) -> None:
+    cmd = [sys.executable, "-m", "server.cli", "serve", "--sessions", str(case.sessions)]
+    cmd += ["--display-size", args.display_size, "--fps", f"{args.fps:g}"]
+    cmd += ["--port", str(args.port), "--quality", case.mode]
+    if case.setting is not None:
+        cmd += ["--upscaler", case.setting.method]
+        cmd += ["--render-size", _size_for(args.display_size, case.setting.scale)]
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    with tempfile.NamedTemporaryFile(prefix="upcast-bench-adaptive-", suffix=".log") as log_file:
+        await _run_serve(cmd, env, log_file, case, args, report)
+
+
+async def _run_serve(
+    cmd: list[str],
+    env: dict[str, str],
+    log_file: IO[bytes],
+    case: Case,
+    args: argparse.Namespace,
+    report: BenchReport,
+) -> None:
+    http_port = args.port + 1
+    proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stderr=log_file, stdout=subprocess.DEVNULL)
+    link: MoqLink | None = None
+    hog: subprocess.Popen[bytes] | None = None
+    timeline: dict[str, list[tuple[float, Setting]]] = {}
+    published: dict[str, list[tuple[float, int]]] = {}  # (counted at, frames) per poll
+    try:
+        rows = await _wait_all_up(proc, http_port)
+        broadcasts = [r["broadcast"] for r in rows]
+        counter = FrameCounter()
+        link = await connect_moq(f"http://127.0.0.1:{args.port}/", on_events=counter.on_events)
+        counter.subscribe(link, broadcasts)
+        await asyncio.sleep(args.warmup)
+        start = time.monotonic()
+        third = args.duration / 3
+        hog_at = (start + third, start + 2 * third) if args.hog else None
+        while (now := time.monotonic()) < start + args.duration:
+            if hog_at is not None and hog is None and now >= hog_at[0]:
+                hog = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+            if hog is not None and hog_at is not None and now >= hog_at[1] and hog.poll() is None:
+                stop_child(hog, 1)
+            with contextlib.suppress(OSError, ValueError):
+                for r in await _poll_sessions(http_port):
+                    published.setdefault(r["broadcast"], []).append(
+                        (float(r["frames_at"] or 0.0), int(r["frames"]))
+                    )
+                    setting = Setting(
+                        str(r["upscaler"]), float(r["scale"]), bool(r.get("frame_generation"))
+                    )
+                    timeline.setdefault(r["broadcast"], []).append((now - start, setting))
+            await asyncio.sleep(1.0)
+        end = start + args.duration
+        log_file.flush()
+        changes = _changes(Path(log_file.name).read_text(errors="replace"))
+        model = QualityModel(load_figures(), _pixels(args.display_size))
+        for b in broadcasts:
+            # From the second second: the first holds the viewer's catch-up after the
+            # warm-up (a burst above the target that would flatter every case).
+            bins = _bins(counter.arrivals[b], start, end)[1:]
+            case_row = _add_session(
+                report, case, b, bins, timeline.get(b, []), changes.get(b, []), model, args
+            )
+            counts = published.get(b, [])
+            if len(counts) >= 2 and counts[-1][0] > counts[0][0]:
+                rate = (counts[-1][1] - counts[0][1]) / (counts[-1][0] - counts[0][0])
+                case_row["session_published_fps"] = round(rate, 2)
+    finally:
+        if hog is not None and hog.poll() is None:
+            stop_child(hog, 1)
+        if link is not None and not link.closed:
+            link.wt.close(0, "bench over")
+        stop_child(proc, 60)
+
+
+def _pixels(size: str) -> int:
+    w, h = (int(v) for v in size.lower().split("x"))
+    return w * h
+
+
+def _changes(log_text: str) -> dict[str, list[str]]:
+    """Each session's quality log lines (one per change, with its reason)."""
+    out: dict[str, list[str]] = {}
+    for line in log_text.splitlines():
+        m = QUALITY_LINE.search(line)
+        if m:
+            out.setdefault(m["broadcast"], []).append(line[m.start("dir") - len("quality ") :])
+    return out
+
+
+def _add_session(
+    report: BenchReport,
+    case: Case,
+    broadcast: str,
+    bins: list[float],
+    timeline: list[tuple[float, Setting]],
+    changes: list[str],
+    model: QualityModel,
+    args: argparse.Namespace,
+) -> dict[str, object]:
+    target = args.fps
+    n = len(bins)
+    third = n // 3
+    expected = [
+        model.expected_psnr(s, "unknown") for _, s in timeline if s.method in model.figures.methods
+    ]
+    seconds: dict[str, int] = {}
+    for _, s in timeline:
+        seconds[s.describe()] = seconds.get(s.describe(), 0) + 1
+    return report.add_case(
+        f"{case.name}: {broadcast}",
+        sessions=case.sessions,
+        mode=case.mode,
+        fixed=None if case.setting is None else case.setting.describe(),
+        target_fps=target,
+        viewer_fps_mean=round(_mean(bins), 2),
+        viewer_fps_min=min(bins) if bins else 0.0,
+        share_of_seconds_at_90pct=round(sum(b >= HOLD * target for b in bins) / max(1, n), 3),
+        viewer_fps_before_hog=round(_mean(bins[:third]), 2),
+        viewer_fps_during_hog=round(_mean(bins[third : 2 * third]), 2),
+        viewer_fps_after_hog=round(_mean(bins[2 * third :]), 2),
+        seconds_to_90pct_after_hog_start=_back_at(bins, third, target) if args.hog else None,
+        switches=len(changes),
+        changes=changes,
+        settings_seconds=seconds,
+        expected_psnr_db_table=round(_mean(expected), 2) if expected else None,
+        per_second_fps=bins,
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        counts = [int(v) for v in args.sessions.split(",") if v.strip()]
+        fixed = _parse_fixed(args.fixed)
+    except ValueError as exc:
+        print(f"upcast bench adaptive: {exc}", file=sys.stderr)
+        return 2
+    cases = [Case(n, "auto", None) for n in counts]
+    cases += [Case(n, "fixed", s) for n in counts for s in fixed]
+    report = BenchReport(
+        "adaptive",
+        {
+            "sessions": counts,
+            "fixed": [None if s is None else s.describe() for s in fixed],
+            "display_size": args.display_size,
+            "fps": args.fps,
+            "duration_s": args.duration,
+            "warmup_s": args.warmup,
+            "hog": "one busy-loop process for the middle third" if args.hog else None,
+            "load_average_1m_at_start": round(os.getloadavg()[0], 2),
+        },
+    )
+    report.notes.append(
+        "viewer fps: frames one moq-lite viewer on the relay received per session per "
+        "second. expected_psnr_db_table: the speed-against-error table's PSNR (against the "
+        "game's ground truth, mean over its scenes) for the settings the session ran, "
+        "weighted by time; a model figure, not a measurement of the decoded stream."
+    )
+    started = time.monotonic()
+    for i, case in enumerate(cases, 1):
+        print(
+            f"[{i}/{len(cases)}] {case.name} ({time.monotonic() - started:.0f} s so far)",
+            flush=True,
+        )
+        try:
+            asyncio.run(_run_case(case, args, report))
+        except (RuntimeError, TimeoutError, OSError) as exc:
+            print(f"upcast bench adaptive: {case.name}: {exc}", file=sys.stderr)
+            return 1
+        for c in report.cases[-case.sessions :]:
+            print(
+                f"  {c['name']}: {c['viewer_fps_mean']:.1f} fps (min {c['viewer_fps_min']:.0f}, "
+                f"{c['share_of_seconds_at_90pct']:.0%} of seconds at 90 %; published "
+                f"{c.get('session_published_fps', '-')}), expected "
+                f"{c['expected_psnr_db_table']} dB, {c['switches']} switches"
+            )
+    report.config["run_s"] = round(time.monotonic() - started, 1)
+    report.write(args.json)
+    print(f"wrote {args.json} in {time.monotonic() - started:.0f} s")
+    return 0

@@ -1,0 +1,50 @@
+"""``upcast bench adaptive``'s arithmetic: per-second bins, recovery time, the log lines
+it counts as switches, and the render size of a fixed setting (server/bench/adaptive.py).
+The benchmark itself runs ``upcast serve`` for minutes: it is run by hand, not here."""
+
+from __future__ import annotations
+
+import pytest
+
+from server.bench.adaptive import _back_at, _bins, _changes, _parse_fixed, _size_for
+from server.session.quality.model import Setting
+
+
+def test_bins_count_arrivals_per_second_inside_the_window() -> None:
+    arrivals = [9.5, 10.0, 10.2, 10.9, 11.5, 12.99, 13.0, 14.0]
+    assert _bins(arrivals, 10.0, 13.0) == [3.0, 1.0, 1.0]
+
+
+def test_recovery_needs_two_seconds_in_a_row_at_90_percent() -> None:
+    bins = [30.0, 12.0, 28.0, 20.0, 27.0, 29.0, 30.0]
+    assert _back_at(bins, 1, 30.0) == 3.0  # bins 4 and 5
+    assert _back_at([10.0, 10.0], 0, 30.0) is None
+
+
+def test_switches_are_the_quality_lines_of_each_session() -> None:
+    log = "\n".join(
+        [
+            "2026 INFO [game-1] server.session.quality.adapter: quality down: a -> b (x; y)",
+            "2026 INFO [game-2] server.session.quality.adapter: quality up: b -> c (z)",
+            "2026 INFO [game-1] server.session.quality.adapter: quality: auto from a",
+            "2026 INFO [game-1] server.session.input_router: render scale 4 requested",
+            "2026 WARNING [game-1] server.session.quality.adapter: quality back: c -> b (w)",
+        ]
+    )
+    changes = _changes(log)
+    assert changes == {
+        "game-1": ["quality down: a -> b (x; y)", "quality back: c -> b (w)"],
+        "game-2": ["quality up: b -> c (z)"],
+    }
+
+
+def test_fixed_settings_and_their_render_sizes() -> None:
+    assert _parse_fixed("fitted, temporal@2, bilinear@2.667") == [
+        None,
+        Setting("temporal", 2.0),
+        Setting("bilinear", 2.667),
+    ]
+    assert _size_for("1280x720", 2.0) == "640x360"
+    assert _size_for("1280x720", 2.667) == "480x270"
+    with pytest.raises(ValueError):
+        _parse_fixed("temporal@two")
