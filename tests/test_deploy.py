@@ -662,6 +662,7 @@ def every_process_metric(tmp_path: Path, ring_name: str) -> set[str]:
     from server.game.render.renderer import Renderer
     from server.quic.certs import generate_cert
     from server.relay.relay import Relay, RelayConfig
+    from server.session.quality.adapter import QualityMetrics
     from server.worker.metrics import worker_registry
     from server.worker.upscale import UpscaleWorker
     from upscalers.host import UpscalerHost
@@ -669,6 +670,7 @@ def every_process_metric(tmp_path: Path, ring_name: str) -> set[str]:
     relay = Relay(RelayConfig(host="127.0.0.1", port=0), generate_cert(directory=tmp_path))
     session = CollectorRegistry()
     MonitorMetrics.for_registry(session)  # what StreamingSession's monitor exports
+    QualityMetrics(session)  # and its adaptive quality
     ring_r = create_render_ring(f"{ring_name}-r", Size(32, 18))
     ring_u = create_display_ring(f"{ring_name}-u", Size(64, 36))
     try:

@@ -1,4 +1,5 @@
-"""``upcast control``: change one session's upscaler or scale at run time, over MoQ.
+"""``upcast control``: change one session's upscaler, scale or quality goal at run time,
+over MoQ.
 
 Publishes one control request on ``<broadcast>/input/control-<id>`` (where the
 page's controls send theirs), waits for the session's ``status`` track to
@@ -36,6 +37,25 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="frame generation on/off (the game renders every other frame, the worker predicts)",
     )
+    parser.add_argument(
+        "--quality",
+        choices=("auto", "fixed"),
+        default=None,
+        help="auto: the session adapts upscaler, scale and frame generation (and lets go of"
+        " every pin); fixed: it keeps what it runs. --upscaler/--scale/--frame-generation"
+        " under auto pin that field",
+    )
+    parser.add_argument(
+        "--preference",
+        choices=("framerate", "resolution", "balanced"),
+        default=None,
+        help="what auto gives up first (see upcast up --quality-preference)",
+    )
+    parser.add_argument("--min-scale", type=float, default=None, help="auto's lowest scale")
+    parser.add_argument("--max-scale", type=float, default=None, help="auto's highest scale")
+    parser.add_argument(
+        "--methods", default=None, help="comma-separated upscalers auto may choose from"
+    )
     parser.add_argument("--timeout", type=float, default=15.0, help="seconds to wait for it")
 
 
@@ -52,14 +72,22 @@ def run(args: argparse.Namespace) -> int:
             scale=args.scale,
             cache_policy=args.cache_policy,
             frame_generation=args.frame_generation,
+            quality=args.quality,
+            preference=args.preference,
+            min_scale=args.min_scale,
+            max_scale=args.max_scale,
+            methods=None
+            if args.methods is None
+            else [m.strip() for m in args.methods.split(",") if m.strip()],
         )
     except ValidationError as exc:
         print(format_validation_error("control request", exc), file=sys.stderr)
         return 2
     if not control.requested():
         print(
-            "upcast control: nothing to change: give --upscaler, --scale, --cache-policy "
-            "and/or --frame-generation",
+            "upcast control: nothing to change: give --upscaler, --scale, --cache-policy, "
+            "--frame-generation and/or the quality goal (--quality, --preference, "
+            "--min-scale, --max-scale, --methods)",
             file=sys.stderr,
         )
         return 2
