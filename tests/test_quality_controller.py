@@ -310,3 +310,26 @@ def test_the_goal_bounds_hold() -> None:
     assert host.log
     assert c.setting.method == "easu"
     assert 2.5 <= c.setting.scale <= 3.0
+
+
+def test_sessions_joining_and_leaving_share_the_host() -> None:
+    """Two sessions run well; two more join and everyone steps down until the rate holds;
+    when they leave, the first two take the room back. (3.5 cores: on the simulated
+    2-core host four sessions cannot hold even the cheapest setting, as on the real one.)"""
+    first = [controller(), controller()]
+    host = SimulatedHost(cores=3.5, controllers=list(first))
+    host.run(40.0)
+    alone = [c.model.expected_psnr(c.setting, "slow") for c in first]
+    joined = [controller(), controller()]
+    host.controllers += joined
+    host.delivered += [[], []]
+    host.run(40.0)
+    for i in range(4):
+        assert min(host.fps_between(i, 60.0, 80.0)) >= 0.9 * 30.0, host.log
+    crowded = [c.model.expected_psnr(c.setting, "slow") for c in first]
+    assert all(c < a for c, a in zip(crowded, alone, strict=True)), host.log
+    host.controllers = list(first)
+    host.delivered = host.delivered[:2]
+    host.run(40.0)
+    after = [c.model.expected_psnr(c.setting, "slow") for c in first]
+    assert all(a > c for a, c in zip(after, crowded, strict=True)), host.log

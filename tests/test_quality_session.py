@@ -213,3 +213,29 @@ def test_a_colour_only_source_never_gets_temporal_nor_a_scale(tmp_path: Path) ->
         assert game.received() == []
 
     asyncio.run(scenario())
+
+
+@pytest.mark.slow
+def test_a_served_session_under_auto_follows_its_goal_end_to_end() -> None:
+    """The real path: serve's session process runs the controller, its switch reaches the
+    game (a new render size) through the input router, and /sessions says what and why.
+    A goal of scale 3-4 from a start at 2 makes the controller move at its first check,
+    whatever the machine's load."""
+    from tests.serve_harness import SMALL, serve
+
+    args = [*SMALL, "--sessions", "1", "--broadcast-prefix", "qa", "--quality", "auto"]
+    args += ["--min-scale", "3", "--max-scale", "4", "--quality-methods", "bilinear,bicubic"]
+    with serve(5296, *args) as served:
+        rows = served.wait(
+            lambda rows: rows[0]["scale"] is not None and rows[0]["scale"] >= 3.0,
+            60,
+            "the session to take a scale inside its goal",
+        )
+        row = rows[0]
+        assert row["quality"] == "auto"
+        assert row["upscaler"] in ("bilinear", "bicubic")
+        assert "goal" in str(row["quality_reason"])
+        assert isinstance(row["expected_psnr_db"], float)
+        # The game renders the new size: frames keep coming.
+        frames = row["frames"]
+        served.wait(lambda rows: rows[0]["frames"] > frames + 10, 30, "frames at the new scale")
