@@ -28,14 +28,16 @@ UPSCALE_MS = {
 }
 
 
-def true_times(setting: Setting, temporal_ms: float | None = None) -> dict[str, float]:
+def true_times(
+    setting: Setting, temporal_ms: float | None = None, fg_render_share: float = 0.6
+) -> dict[str, float]:
     render_px = DISPLAY_PIXELS / setting.scale**2
     render = 6.0 + 22.0 * render_px / (480 * 270)  # a fixed part plus a per-pixel part
     upscale = UPSCALE_MS[setting.method]
     if setting.method == "temporal" and temporal_ms is not None:
         upscale = temporal_ms
     if setting.frame_generation:
-        render *= 0.6
+        render *= fg_render_share
         upscale += 2.0
     return {"render": render, "upscale": upscale, "encode": 10.0}
 
@@ -48,6 +50,7 @@ class SimulatedHost:
     scene: SceneClass = "slow"
     hog_cores: Callable[[float], float] = lambda t: 0.0
     temporal_ms: float | None = None
+    fg_render_share: float = 0.6
     step_s: float = 0.5
     now: float = 0.0
     log: list[tuple[float, int, str]] = field(default_factory=list)
@@ -62,7 +65,9 @@ class SimulatedHost:
             self.step()
 
     def step(self) -> None:
-        times = [true_times(c.setting, self.temporal_ms) for c in self.controllers]
+        times = [
+            true_times(c.setting, self.temporal_ms, self.fg_render_share) for c in self.controllers
+        ]
         demand = sum(sum(t.values()) * self.fps / 1000.0 for t in times)
         demand += self.hog_cores(self.now)
         stretch = max(1.0, demand / self.cores)

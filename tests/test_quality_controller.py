@@ -333,3 +333,21 @@ def test_sessions_joining_and_leaving_share_the_host() -> None:
     host.run(40.0)
     after = [c.model.expected_psnr(c.setting, "slow") for c in first]
     assert all(a > c for a, c in zip(after, crowded, strict=True)), host.log
+
+
+def test_frame_generation_that_saves_nothing_here_is_learned() -> None:
+    """On this host frame generation costs as much as a full render (the game's per-frame
+    work dominates): once measured, it is predicted to save nothing, so the cheapest
+    setting is one without it (which looks better for the same cost)."""
+    model = QualityModel(load_figures(), DISPLAY_PIXELS)
+    full, fg = Setting("bilinear", 4.0), Setting("bilinear", 4.0, True)
+    prior = model.predict(fg).p50["render"]
+    for _ in range(6):
+        model.learn(full, {"render": 20.0}, {"render": 24.0})
+    assert model.predict(fg).p50["render"] < 20.0  # the prior: about 0.6 of a full render
+    for _ in range(6):
+        model.learn(fg, {"render": 20.0}, {"render": 24.0})
+    assert model.learned.fg_render_share == pytest.approx(1.0, abs=0.05)
+    assert model.predict(fg).p50["render"] == pytest.approx(20.0, rel=0.05)
+    assert model.predict(fg).cpu_cores(30.0) >= model.predict(full).cpu_cores(30.0)
+    assert prior > 0

@@ -15,8 +15,9 @@ alone:
   cost; the fixed part is the scene update and the frame's bookkeeping), fitted to
   the render stage's medians measured at each scale the session ran at (smoothed
   per scale); with one scale measured, ``FIXED_SHARE`` of it is taken as fixed. With
-  frame generation a displayed frame costs half a full render plus a dynamic-only
-  draw, and the render stage is not learned from (it mixes the two);
+  frame generation a displayed frame costs a share of a full render: half a full
+  render plus a dynamic-only draw until measured, then what the render stage's median
+  shows against a full render at that size (on a loaded host it was no cheaper);
 - *upscale*: the table's time for the method and scale (at this display size),
   times a ratio learned online from the measured upscale stage: per method while it
   runs, and for one that has not run yet the larger of the last measured ratio of any
@@ -40,7 +41,9 @@ from server.session.quality.scene import SCENES_OF_CLASS, SceneClass
 SMOOTHING = 0.5  # weight of a new measurement in the learned figures
 MAX_SLOWDOWN = 4.0
 FIXED_SHARE = 0.3  # of a render measured at one scale only, taken as its fixed part
-DYNAMIC_DRAW_SHARE = 0.2  # a dynamic-only tick against a full render (moving objects)
+DYNAMIC_DRAW_SHARE = 0.2
+MIN_FG_RENDER_SHARE = 0.2
+MAX_FG_RENDER_SHARE = 1.5  # a dynamic-only tick against a full render (moving objects)
 STAGES = ("render", "upscale", "encode")
 
 
@@ -102,6 +105,7 @@ class LearnedCosts:
     upscale_ratio: dict[str, float] = field(default_factory=dict)
     last_upscale_ratio: float | None = None
     upscale_p95_over_p50: float | None = None
+    fg_render_share: float | None = None  # render p50 with frame generation / without
 
 
 def _smooth(old: float | None, new: float) -> float:
@@ -153,6 +157,13 @@ class QualityModel:
     def learn(self, setting: Setting, p50: Mapping[str, float], p95: Mapping[str, float]) -> None:
         """Fold one window's measured stage times (ms) taken under ``setting`` in."""
         lc = self.learned
+        if _usable(p50, "render") and setting.frame_generation and lc.render_ms_at:
+            # What a displayed frame's render costs with frame generation, against a full
+            # render at that size: learned, since the dynamic-only draw's share and the
+            # game's per-frame work that frame generation does not halve vary by scene.
+            full, _ = self._render_ms(self.render_pixels(setting.scale))
+            share = min(MAX_FG_RENDER_SHARE, max(MIN_FG_RENDER_SHARE, p50["render"] / full))
+            lc.fg_render_share = _smooth(lc.fg_render_share, share)
         if _usable(p50, "render") and _usable(p95, "render") and not setting.frame_generation:
             key = round(setting.scale, 4)
             old = lc.render_ms_at.get(key)
@@ -188,7 +199,7 @@ class QualityModel:
         px = self.render_pixels(setting.scale)
         r50, r95 = self._render_ms(px)
         if setting.frame_generation:
-            r50 *= (1.0 + DYNAMIC_DRAW_SHARE) / 2.0
+            r50 *= lc.fg_render_share or (1.0 + DYNAMIC_DRAW_SHARE) / 2.0
         # A method not run yet: the host's slowdown seen on the others, but never faster
         # than the table (a cheap method running fast says little about a costly one).
         ratio = lc.upscale_ratio.get(
