@@ -34,9 +34,9 @@ from pathlib import Path
 from typing import IO
 
 from server.bench.report import BenchReport
-from server.bench.serve import ROOT, FrameCounter, _poll_sessions, _wait_all_up
+from server.bench.serve import ROOT, _poll_sessions, watch_every_session
 from server.ops.process import stop_child
-from server.quic.moq_link import MoqLink, connect_moq
+from server.quic.moq_link import MoqLink
 from server.session.quality.figures import load_figures
 from server.session.quality.model import QualityModel, Setting
 
@@ -148,11 +148,7 @@ async def _run_serve(
     timeline: dict[str, list[tuple[float, Setting]]] = {}
     published: dict[str, list[tuple[float, int]]] = {}  # (counted at, frames) per poll
     try:
-        rows = await _wait_all_up(proc, http_port)
-        broadcasts = [r["broadcast"] for r in rows]
-        counter = FrameCounter()
-        link = await connect_moq(f"http://127.0.0.1:{args.port}/", on_events=counter.on_events)
-        counter.subscribe(link, broadcasts)
+        broadcasts, counter, link = await watch_every_session(proc, args.port)
         await asyncio.sleep(args.warmup)
         start = time.monotonic()
         third = args.duration / 3

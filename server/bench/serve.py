@@ -100,6 +100,19 @@ async def _wait_all_up(proc: subprocess.Popen[bytes], http_port: int) -> list[di
     raise TimeoutError(f"not every session was up after {UP_TIMEOUT_S:.0f} s")
 
 
+async def watch_every_session(
+    proc: subprocess.Popen[bytes], port: int
+) -> tuple[list[str], FrameCounter, MoqLink]:
+    """Once every session of ``upcast serve`` (relay on ``port``) is up: one viewer on
+    the relay subscribed to each session's video track. The caller closes the link."""
+    rows = await _wait_all_up(proc, port + 1)
+    broadcasts = [r["broadcast"] for r in rows]
+    counter = FrameCounter()
+    link = await connect_moq(f"http://127.0.0.1:{port}/", on_events=counter.on_events)
+    counter.subscribe(link, broadcasts)
+    return broadcasts, counter, link
+
+
 async def _frames_at(http_port: int) -> tuple[float, dict[str, tuple[float, int]]]:
     """Now, and each session's (time counted, frames published)."""
     rows = await _poll_sessions(http_port)
@@ -119,11 +132,7 @@ async def _measure(args: argparse.Namespace, report: BenchReport) -> None:
     proc = subprocess.Popen(cmd, cwd=ROOT, env=env)
     link: MoqLink | None = None
     try:
-        rows = await _wait_all_up(proc, http_port)
-        broadcasts = [r["broadcast"] for r in rows]
-        counter = FrameCounter()
-        link = await connect_moq(f"http://127.0.0.1:{args.port}/", on_events=counter.on_events)
-        counter.subscribe(link, broadcasts)
+        broadcasts, counter, link = await watch_every_session(proc, args.port)
         await asyncio.sleep(args.warmup)
         half = args.duration / 2
         t0, f0 = await _frames_at(http_port)
