@@ -118,7 +118,8 @@ class SessionQuality:
         self._publish()
 
     def frame(self, meta: FrameMeta) -> None:
-        self.scene.frame(meta, time.monotonic())
+        if self.enabled:  # fixed: nothing to judge, so nothing to track
+            self.scene.frame(meta, time.monotonic())
 
     def control_outcome(self, result: ControlResult) -> None:
         """Every control result. Our own: a refused one is rolled back. A person's
@@ -193,7 +194,7 @@ class SessionQuality:
         log.info("quality goal set by %s: %s", source, changes)
 
     def step(self, now: float) -> Decision | None:
-        if self.controller is None:
+        if self.controller is None or not self.enabled:
             return None
         snap = self.monitor.snapshot()
         p50: Mapping[str, float] = {k: f.p50_ms for k, f in snap.stages.items()}
