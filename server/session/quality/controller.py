@@ -235,7 +235,7 @@ class QualityController:
         self.model.learn(current, p50, p95)
         self.state.expected_psnr_db = self.model.expected_psnr(current, m.scene)
         self.state.headroom_cores = _idle(m)
-        if not self._allowed(current):
+        if not self._within_goal(current):
             return self._conform(m)  # a new goal or pin applies at once, warm or not
         if m.now - self._first_at < WARMUP_S:
             return None  # the first seconds are start-up: kernels, caches, a cold encoder
@@ -259,16 +259,10 @@ class QualityController:
             and m.fps >= self._judged_fps() * HOLD_FRACTION
         )
 
-    def _allowed(self, setting: Setting) -> bool:
-        return any(
-            c.method == setting.method
-            and abs(c.scale - setting.scale) < 1e-6
-            and c.frame_generation == setting.frame_generation
-            for c in self._candidates()
-        ) or self._within_goal(setting)
-
     def _within_goal(self, setting: Setting) -> bool:
-        """An off-ladder scale (the start's 2.667, say) is fine inside the goal's bounds."""
+        """Whether the goal, the pins and the source allow this setting. Every candidate
+        passes; so does an off-ladder scale inside the bounds (the start's 2.667, say).
+        Checked on every update: no walk over the candidates."""
         g, p = self.goal, self._pins
         methods_ok = (not g.methods or setting.method in g.methods) and setting.method in set(
             self.model.methods()
