@@ -75,6 +75,26 @@ def test_scale_alone_is_accepted_at_once() -> None:
     assert [(r.seq, r.accepted, r.requested) for r in results] == [(3, True, {"scale": 1.5})]
 
 
+def test_encode_scale_reaches_the_encoder_and_is_refused_where_the_size_is_fixed() -> None:
+    results: list[ControlResult] = []
+    router = _router(results)
+    # A router without the session's encoder hook (no size to change) says so.
+    router.handle("g/input/a", b'{"type":"control","encode_scale":2,"seq":1}')
+    scales: list[float] = []
+    router.on_encode_scale = scales.append
+    router.handle("g/input/a", b'{"type":"control","encode_scale":2,"seq":2}')
+    router.handle("g/input/a", b'{"type":"control","encode_scale":0.5,"seq":3}')  # upscaling
+    router.handle("g/input/a", b'{"type":"control","encode_scale":"NaN","seq":4}')
+    assert scales == [2.0]
+    assert [(r.seq, r.accepted) for r in results] == [(1, False), (2, True), (3, False), (4, False)]
+    assert results[0].reason == "encode_scale: this session's encoder size is fixed"
+    assert results[1].requested == {"encode_scale": 2.0}
+    assert all("encode_scale" in (r.reason or "") for r in results[2:])
+    # The session's own choice (adaptive quality) takes the same path.
+    assert router.apply_setting("quality-auto", encode_scale=1.5) is not None
+    assert scales == [2.0, 1.5] and results[-1].source == "quality-auto"
+
+
 def test_frame_generation_goes_to_the_game_and_into_the_stream_state(tmp_path: Path) -> None:
     import socket
 

@@ -165,3 +165,62 @@ def test_request_right_after_periodic_keyframe_waits() -> None:
         keys.append(enc.encode(textured(i), i, i * 40_000).keyframe)
     assert [i for i, k in enumerate(keys) if k] == [0, 10, 13]  # 13: 120 ms after 10
     assert enc.forced_keyframes == 1
+
+
+def test_encoded_size_changes_mid_stream_at_an_idr_with_a_new_init_segment() -> None:
+    enc = VideoEncoder(EncoderConfig(W, H, fps=FPS, bitrate=1_500_000))
+    assert enc.encoded_size == (W, H) and enc.encoded_config.generation == 0
+    init = enc.init_segment
+    first = [enc.encode(textured(i), i, i * FRAME_US) for i in range(4)]
+    assert all(f.new_config is None for f in first)
+    enc.set_encoded_size(W // 2, H // 2)
+    assert enc.encoded_size == (W, H)  # applied by the next encode, on its thread
+    second = [enc.encode(textured(i), i, i * FRAME_US) for i in range(4, 10)]
+    config = second[0].new_config
+    assert config is not None and (config.width, config.height) == (W // 2, H // 2)
+    assert config.generation == 1 and enc.encoded_config == config
+    assert second[0].keyframe and not any(f.keyframe for f in second[1:])
+    assert all(f.new_config is None for f in second[1:])
+    # The new track's fragments number from 1; timestamps run on.
+    infos = [parse_fragment(f.fragment) for f in second]
+    assert [i.sequence for i in infos] == list(range(1, 7))
+    assert [i.decode_time for i in infos] == [i * FRAME_US for i in range(4, 10)]
+    # Each part decodes with its own init segment, at its own size, and the smaller
+    # picture is the input scaled down (area average), not a crop or garbage.
+    big = decode_all(init, first)
+    small = decode_all(config.init_segment, second)
+    assert [(f.width, f.height) for f in big] == [(W, H)] * 4
+    assert [(f.width, f.height) for f in small] == [(W // 2, H // 2)] * 6
+    reference = textured(9).reshape(H // 2, 2, W // 2, 2, 3).mean(axis=(1, 3))
+    assert psnr(reference, small[-1].to_ndarray(format="rgb24")) > 28.0
+    # Asking for the size encoded now is no change; back to full size is generation 2.
+    enc.set_encoded_size(W // 2, H // 2)
+    assert enc.encode(textured(10), 10, 10 * FRAME_US).new_config is None
+    enc.set_encoded_size(W, H)
+    back = enc.encode(textured(11), 11, 11 * FRAME_US)
+    assert back.keyframe and back.new_config is not None
+    assert (back.new_config.generation, back.new_config.width) == (2, W)
+    assert enc.size_changes == 2
+
+
+@pytest.mark.parametrize("size", [(W + 2, H), (W, H + 2), (14, 14), (W - 1, H), (W, H - 3)])
+def test_encoded_size_out_of_range_or_odd_is_refused_by_name(size: tuple[int, int]) -> None:
+    enc = VideoEncoder(EncoderConfig(W, H, fps=FPS))
+    with pytest.raises(ValueError, match="encoded size"):
+        enc.set_encoded_size(*size)
+    # Nothing changed: the next frame is the same size, no new configuration.
+    assert enc.encode(textured(0), 0, 0).new_config is None and enc.encoded_size == (W, H)
+
+
+def test_encoded_size_from_a_scale_is_even_and_bounded() -> None:
+    from server.frames.frame import Size
+    from server.media.encode import encoded_size
+
+    assert encoded_size(Size(1280, 720), 1.0) == (1280, 720)
+    assert encoded_size(Size(1280, 720), 2.0) == (640, 360)
+    assert encoded_size(Size(1280, 720), 1.5) == (852, 480)
+    assert encoded_size(Size(1278, 718), 3.0) == (426, 238)
+    assert encoded_size(Size(64, 36), 4.0) == (16, 16)
+    for bad in (0.5, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="encode scale"):
+            encoded_size(Size(1280, 720), bad)

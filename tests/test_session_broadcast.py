@@ -143,3 +143,45 @@ def test_viewer_input_broadcasts_are_subscribed_and_delivered() -> None:
     assert h.broadcast.stats.input_broadcasts == 1
     assert h.broadcast._input_paths == {}
     assert h.ended == ["game/input/v1"]
+
+
+def test_a_new_encoded_size_moves_the_video_to_a_new_track_named_by_the_catalog() -> None:
+    h = Harness()
+    catalog = h.pipe.server.subscribe("game", "catalog.json")
+    old = h.pipe.server.subscribe("game", "video")
+    h.sync()
+    h.publish(1, keyframe=True)
+    h.publish(2, keyframe=False)
+    # The new size's catalog goes out before its first frame; the old track's open
+    # group ends complete (FIN), not reset: the viewer counts nothing skipped.
+    h.broadcast.switch_video("video.1", b'{"new":1}')
+    h.sync()
+    assert h.frames(catalog)[-1] == (1, b'{"new":1}')
+    closed = [
+        e for e in h.relay_events if isinstance(e, ev.GroupClosed) and e.subscription_id == old
+    ]
+    assert closed and all(g.complete for g in closed)
+    h.publish(3, keyframe=True)
+    assert h.frames(old) == [(0, b"frag1"), (0, b"frag2")]  # nothing more on the old track
+    # A viewer that read the catalog subscribes to the new track and starts at a keyframe.
+    requests = h.keyframe_requests
+    new = h.pipe.server.subscribe("game", "video.1")
+    stale = h.pipe.server.subscribe("game", "video")  # a catalog it no longer may follow
+    h.sync()
+    assert h.keyframe_requests == requests + 1
+    refused = {
+        e.subscription_id
+        for e in h.relay_events
+        if isinstance(e, ev.SubscribeClosed) and not e.accepted
+    }
+    assert stale in refused and new not in refused
+    h.publish(4, keyframe=False)
+    h.publish(5, keyframe=True)
+    assert h.frames(new) == [(2, b"frag5")]
+    assert h.broadcast.stats.subscribers["video.1"] == 1
+    # The old subscription is still counted until the viewer closes it.
+    assert h.broadcast.stats.subscribers["video"] == 1
+    # Switching to the track already in use changes nothing.
+    h.broadcast.switch_video("video.1", b"{}")
+    h.sync()
+    assert h.frames(catalog)[-1] == (1, b'{"new":1}')

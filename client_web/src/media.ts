@@ -184,7 +184,9 @@ export class MediaSubscription {
 	async #readGroup(track: Moq.Track, group: Moq.Group, gap: boolean): Promise<void> {
 		let first = true;
 		for (;;) {
-			if (this.#stopped) return;
+			// A new catalog moved the video to another track (a new size): what is left
+			// of the old one was encoded for a decoder configured differently.
+			if (this.#stopped || track !== this.#video) return;
 			const frame = group.state.frames.peek().shift();
 			if (frame) {
 				const fault = this.#fault();

@@ -29,9 +29,11 @@ from pathlib import Path
 from typing import Any
 
 from server.bench.report import BenchReport
+from server.media.catalog import VIDEO_TRACK
 from server.moq.events import Event, FrameReceived
 from server.ops.process import stop_child
 from server.quic.moq_link import MoqLink, connect_moq
+from server.session.broadcast import CATALOG_TRACK
 
 ROOT = Path(__file__).resolve().parents[2]
 UP_TIMEOUT_S = 240.0
@@ -51,22 +53,47 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 class FrameCounter:
-    """One viewer connection subscribed to every session's video track."""
+    """One viewer connection subscribed to every session's video track, following each
+    session's catalog when the video moves to a new track (a new encoded size)."""
 
     def __init__(self) -> None:
         self.arrivals: dict[str, list[float]] = defaultdict(list)
-        self._tracks: dict[int, str] = {}
+        self._tracks: dict[int, str] = {}  # video subscription -> broadcast
+        self._catalogs: dict[int, str] = {}  # catalog subscription -> broadcast
+        self._video: dict[str, tuple[int, str]] = {}  # broadcast -> (subscription, track)
 
     def on_events(self, link: MoqLink, events: list[Event]) -> None:
         now = time.monotonic()
         for e in events:
-            if isinstance(e, FrameReceived) and e.subscription_id in self._tracks:
+            if not isinstance(e, FrameReceived):
+                continue
+            if e.subscription_id in self._tracks:
                 self.arrivals[self._tracks[e.subscription_id]].append(now)
+            elif e.subscription_id in self._catalogs:
+                self._follow(link, self._catalogs[e.subscription_id], e.payload)
 
     def subscribe(self, link: MoqLink, broadcasts: list[str]) -> None:
         for b in broadcasts:
-            self._tracks[link.moq.subscribe(b, "video")] = b
+            self._catalogs[link.moq.subscribe(b, CATALOG_TRACK)] = b
+            self._watch(link, b, VIDEO_TRACK)
         link.flush()
+
+    def _watch(self, link: MoqLink, broadcast: str, track: str) -> None:
+        old = self._video.get(broadcast)
+        if old is not None:
+            if old[1] == track:
+                return
+            self._tracks.pop(old[0], None)
+            link.moq.unsubscribe(old[0])
+        subscription = link.moq.subscribe(broadcast, track)
+        self._tracks[subscription] = broadcast
+        self._video[broadcast] = (subscription, track)
+
+    def _follow(self, link: MoqLink, broadcast: str, catalog: bytes) -> None:
+        with contextlib.suppress(ValueError, KeyError, TypeError, StopIteration):
+            track = next(iter(json.loads(catalog)["video"]["renditions"]))
+            self._watch(link, broadcast, str(track))
+            link.flush()
 
     def rate(self, broadcast: str, start: float, end: float) -> float:
         n = sum(1 for t in self.arrivals[broadcast] if start <= t < end)

@@ -38,6 +38,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="frame generation on/off (the game renders every other frame, the worker predicts)",
     )
     parser.add_argument(
+        "--encode-scale",
+        type=float,
+        default=None,
+        help="display / encoded size (1-4): the encoder sends a smaller picture, the viewers"
+        " follow without a reload; 1: the display size",
+    )
+    parser.add_argument(
         "--quality",
         choices=("auto", "fixed"),
         default=None,
@@ -72,6 +79,7 @@ def run(args: argparse.Namespace) -> int:
             scale=args.scale,
             cache_policy=args.cache_policy,
             frame_generation=args.frame_generation,
+            encode_scale=args.encode_scale,
             quality=args.quality,
             preference=args.preference,
             min_scale=args.min_scale,
@@ -86,7 +94,7 @@ def run(args: argparse.Namespace) -> int:
     if not control.requested():
         print(
             "upcast control: nothing to change: give --upscaler, --scale, --cache-policy, "
-            "--frame-generation and/or the quality goal (--quality, --preference, "
+            "--frame-generation, --encode-scale and/or the quality goal (--quality, --preference, "
             "--min-scale, --max-scale, --methods)",
             file=sys.stderr,
         )

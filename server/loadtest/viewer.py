@@ -203,6 +203,13 @@ class LoadViewer:
         subscription = link.moq.subscribe(self.config.broadcast, track)
         self._tracks[subscription] = track
 
+    def _unsubscribe(self, link: MoqLink, track: str) -> None:
+        for subscription, name in list(self._tracks.items()):
+            if name == track:
+                del self._tracks[subscription]
+                if not link.moq.closed:
+                    link.moq.unsubscribe(subscription)
+
     def _on_frame(self, link: MoqLink, event: FrameReceived) -> None:
         track = self._tracks.get(event.subscription_id)
         if track is None:
@@ -248,6 +255,14 @@ class LoadViewer:
             self._video_track = str(video_track)
             self._subscribe(link, self._video_track)
             self._subscribe(link, TIMING_TRACK)
+        elif str(video_track) != self._video_track:
+            # The encoded size changed: the video moved to a new track (server/media/
+            # catalog.py video_track_name). Leave the old one, follow the new one.
+            self._unsubscribe(link, self._video_track)
+            self.stats.on_new_track()
+            self._read_init(renditions[video_track])
+            self._video_track = str(video_track)
+            self._subscribe(link, self._video_track)
 
     def _read_init(self, rendition: object) -> None:
         """Timescale and trex defaults of the video track's init segment, where given."""

@@ -126,6 +126,13 @@ class DeliveryCounters:
         """Count every gap still open as lost (the stream is over for us)."""
         self._settle(0)
 
+    def new_track(self) -> None:
+        """The video moved to a new track (a new encoded size): its fragments and groups
+        number afresh, and what the old track left missing stays missing."""
+        self._settle(0)
+        self._top_sequence = None
+        self._top_group = None
+
     def _settle(self, keep: int) -> None:
         top = self._top_sequence
         while self._missing and top is not None:
@@ -220,6 +227,11 @@ class ViewerStats:
         if sequence is not None:
             self.delivery.on_group(sequence)
             self.delivery_window.on_group(sequence, counting=inside)
+
+    def on_new_track(self) -> None:
+        """The catalog moved the video to a new track (see DeliveryCounters.new_track)."""
+        self.delivery.new_track()
+        self.delivery_window.new_track()
 
     def on_group_reset(self, now_s: float) -> None:
         self.delivery.on_group_reset()

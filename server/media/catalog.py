@@ -31,7 +31,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from pydantic.alias_generators import to_camel
 
 if TYPE_CHECKING:
-    from server.media.encode import VideoEncoder
+    from server.media.encode import EncodedConfig, VideoEncoder
 
 VIDEO_TRACK = "video"
 AUDIO_TRACK = "audio"
@@ -140,15 +140,43 @@ def audio_section(
 def catalog_for(
     encoder: VideoEncoder, track: str = VIDEO_TRACK, audio: AudioSection | None = None
 ) -> Catalog:
-    """The catalog describing what ``encoder`` produces (and the audio, if any)."""
+    """The catalog describing what ``encoder`` produces now (and the audio, if any)."""
     cfg = encoder.config
+    return catalog_of(encoder.encoded_config, cfg.fps, cfg.target_bitrate, track, audio)
+
+
+def catalog_of(
+    config: EncodedConfig,
+    fps: float,
+    bitrate: int | None,
+    track: str = VIDEO_TRACK,
+    audio: AudioSection | None = None,
+) -> Catalog:
+    """The catalog of one encoded configuration published on ``track``."""
     video = video_catalog(
-        codec=encoder.codec_string(),
-        init_segment=encoder.init_segment,
-        width=cfg.width,
-        height=cfg.height,
-        fps=cfg.fps,
-        bitrate=cfg.target_bitrate,
+        codec=config.codec,
+        init_segment=config.init_segment,
+        width=config.width,
+        height=config.height,
+        fps=fps,
+        bitrate=bitrate,
         track=track,
     )
     return video if audio is None else Catalog(video=video.video, audio=audio)
+
+
+def video_track_name(generation: int) -> str:
+    """The track of one encoded configuration: ``video``, then ``video.1``, ``video.2``...
+
+    A new size is a new track, not new data on the old one: a viewer reads the catalog
+    before it subscribes, so it never meets a frame its decoder was not configured for,
+    and a relay never serves a group of the old size under the new name."""
+    return VIDEO_TRACK if generation == 0 else f"{VIDEO_TRACK}.{generation}"
+
+
+def is_video_track(name: str) -> bool:
+    """Whether ``name`` is one of the names :func:`video_track_name` gives."""
+    if name == VIDEO_TRACK:
+        return True
+    prefix, _, number = name.partition(".")
+    return prefix == VIDEO_TRACK and number.isdigit() and not number.startswith("0")

@@ -19,6 +19,16 @@ the context's ``bit_rate`` changes between frames. The VBV ceiling stays the one
 the encoder opened with (``bitrate``), so the rate can go down from it and back
 up to it, not above.
 
+The encoded size can change while streaming too (:meth:`VideoEncoder.set_encoded_size`,
+for the session's quality control when nothing cheaper holds the frame rate): the
+frames keep arriving at the display size and swscale scales them down in the pass
+that converts them to YUV, so a smaller size costs no extra pass. A new size needs a
+new SPS, so x264 is reopened: the next frame is an IDR, the stream gets a new init
+segment (:class:`EncodedConfig`, on that frame) and the session publishes it as a new
+video track in a new catalog. Timestamps run on across the switch; fragment numbers
+(mfhd) start over at 1 on the new track, as a new encoder's do, so a viewer that joins
+the new track some frames after its first counts nothing lost.
+
 The fragment of a frame is returned by the call that encodes that frame: x264
 in this mode returns every access unit immediately, and the fMP4 boxes are
 written by :mod:`server.media.cmaf` without a muxer that would hold a frame back.
@@ -30,8 +40,9 @@ swscale and x264, so the event loop keeps running while a frame encodes.
 
 from __future__ import annotations
 
+import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from fractions import Fraction
 
 import av
@@ -40,8 +51,9 @@ import numpy.typing as npt
 from av.codec.context import Flags
 from av.video.codeccontext import VideoCodecContext
 from av.video.frame import PictureType, VideoFrame
-from av.video.reformatter import ColorRange, Colorspace, VideoReformatter
+from av.video.reformatter import ColorRange, Colorspace, Interpolation, VideoReformatter
 
+from server.frames.frame import Size
 from server.media.cmaf import (
     MOOF_SIZE,
     AvcConfig,
@@ -69,6 +81,16 @@ _RANGE_MPEG = 1
 def default_bitrate(width: int, height: int, fps: float) -> int:
     """Bits per second scaled with pixels per second from 6 Mbit/s at 720p60."""
     return round(_REFERENCE_BITS_PER_PIXEL_FRAME * width * height * fps)
+
+
+def encoded_size(display: Size, scale: float) -> tuple[int, int]:
+    """The encoded size for ``display`` / ``scale`` (scale >= 1): even, rounded down,
+    and at least 16x16."""
+    if not (math.isfinite(scale) and scale >= 1.0):
+        raise ValueError(f"encode scale must be a finite number >= 1, got {scale}")
+    width = max(16, int(display.width / scale) // 2 * 2)
+    height = max(16, int(display.height / scale) // 2 * 2)
+    return min(width, display.width), min(height, display.height)
 
 
 @dataclass(frozen=True)
@@ -144,6 +166,17 @@ _X264_PRESETS = (
 
 
 @dataclass(frozen=True)
+class EncodedConfig:
+    """What a decoder needs for the frames from one IDR on: a new one per size change."""
+
+    generation: int  # 0 for the size the encoder opened with, +1 per change
+    width: int
+    height: int
+    codec: str  # WebCodecs codec string of the SPS
+    init_segment: bytes  # ftyp + moov with this SPS/PPS
+
+
+@dataclass(frozen=True)
 class EncodedFrame:
     """One encoded frame: a complete CMAF fragment (moof + mdat), one MoQ frame."""
 
@@ -158,6 +191,8 @@ class EncodedFrame:
     # probing), and how many bytes of filler data this frame carries to reach it.
     padded_to: int = 0
     filler_bytes: int = 0
+    # Set on the first frame (an IDR) of a new encoded size: publish it before the frame.
+    new_config: EncodedConfig | None = None
 
 
 class VideoEncoder:
@@ -174,6 +209,11 @@ class VideoEncoder:
         self._reformatter = VideoReformatter()
         self.avc = AvcConfig.from_annexb(extradata)
         self.init_segment = init_segment(config.width, config.height, TIMESCALE, self.avc)
+        self.encoded_config = EncodedConfig(
+            0, config.width, config.height, self.avc.codec_string(), self.init_segment
+        )
+        self._pending_size: tuple[int, int] | None = None
+        self.size_changes = 0
         self._sequence = 0
         self._last_pts_us: int | None = None
         self._keyframe_requested = False
@@ -218,6 +258,32 @@ class VideoEncoder:
         self._pending_bitrate = rate
         return rate
 
+    @property
+    def encoded_size(self) -> tuple[int, int]:
+        """(width, height) of the frames x264 encodes now (the input size until a change)."""
+        cfg = self.encoded_config
+        return cfg.width, cfg.height
+
+    def set_encoded_size(self, width: int, height: int) -> None:
+        """Encode at ``width`` x ``height`` from the next frame on (that frame an IDR
+        with a new :class:`EncodedConfig`); the input size is the input's size again.
+
+        The frames still arrive at the input size and are scaled down while converted.
+        A size no larger than the input, even and at least 16x16 (what x264 and the
+        browsers' decoders take), or ValueError naming it. Asking for the size already
+        encoded changes nothing. Safe to call from the event loop while another thread
+        encodes: the encoding thread applies it before its next frame.
+        """
+        cfg = self.config
+        if not (16 <= width <= cfg.width and 16 <= height <= cfg.height):
+            raise ValueError(
+                f"encoded size {width}x{height} must lie within 16x16 .. the input's"
+                f" {cfg.width}x{cfg.height}"
+            )
+        if width % 2 or height % 2:
+            raise ValueError(f"encoded size {width}x{height} must be even for yuv420p (x264)")
+        self._pending_size = (width, height)
+
     def pad_frames_to(self, fragment_bytes: int) -> None:
         """Make every coming fragment at least ``fragment_bytes`` long with filler data
         (server/media/filler.py), 0 to stop: the session's link probe. Safe to call from
@@ -249,6 +315,8 @@ class VideoEncoder:
                 self._bitrate = pending
                 self.bitrate_changes += 1
 
+        new_config = self._take_size_change()
+
         t_convert = time.perf_counter_ns()
         yuv = self._to_yuv(rgb)
         t_x264 = time.perf_counter_ns()
@@ -273,6 +341,8 @@ class VideoEncoder:
             self._last_keyframe_pts_us = pts_us
         if forced:
             self.forced_keyframes += 1
+        if new_config is not None and not keyframe:
+            raise RuntimeError("x264 reopened at a new size but its first frame is no IDR")
 
         self._sequence += 1
         floor = self._min_fragment_bytes
@@ -291,7 +361,42 @@ class VideoEncoder:
             x264_ms=(t_box - t_x264) / 1e6,
             padded_to=floor,
             filler_bytes=len(padded) - len(sample),
+            new_config=new_config,
         )
+
+    def _take_size_change(self) -> EncodedConfig | None:
+        size = self._pending_size
+        if size is None:
+            return None
+        self._pending_size = None
+        if size == self.encoded_size:
+            return None
+        width, height = size
+        # The VBV ceiling stays the one the encoder opened with and the rate stays the
+        # one the rate control chose: the link did not change, only the picture's size.
+        reopened = replace(
+            self.config, width=width, height=height, bitrate=self.config.target_bitrate
+        )
+        codec = _open_x264(reopened)
+        codec.bit_rate = self._bitrate
+        extradata = codec.extradata
+        if not extradata:
+            raise RuntimeError("libx264 returned no global header (SPS/PPS)")
+        self._codec = codec
+        self.avc = AvcConfig.from_annexb(extradata)
+        self.init_segment = init_segment(width, height, TIMESCALE, self.avc)
+        self.encoded_config = EncodedConfig(
+            self.encoded_config.generation + 1,
+            width,
+            height,
+            self.avc.codec_string(),
+            self.init_segment,
+        )
+        # A fresh x264 starts with an IDR: the switch serves any pending request.
+        self._keyframe_requested = False
+        self._sequence = 0  # a new track: its fragments count from 1
+        self.size_changes += 1
+        return self.encoded_config
 
     def _take_keyframe_request(self, pts_us: int) -> bool:
         if not self._keyframe_requested:
@@ -311,8 +416,15 @@ class VideoEncoder:
             frame = VideoFrame.from_ndarray(np.ascontiguousarray(rgb), format="rgb24")
         # BT.709 limited range, matching the VUI written into the SPS, so the browser
         # converts back with the same matrix.
+        width, height = self.encoded_size
+        scaled = (width, height) != (self.config.width, self.config.height)
         return self._reformatter.reformat(
             frame,
+            width=width,
+            height=height,
+            # Area averaging when scaling down: no aliasing of thin detail, and no more
+            # work than the conversion pass it shares.
+            interpolation=Interpolation.AREA if scaled else None,
             format="yuv420p",
             src_colorspace=Colorspace.ITU709,
             dst_colorspace=Colorspace.ITU709,

@@ -30,6 +30,7 @@ from prometheus_client.process_collector import ProcessCollector
 
 from server.auth import Authorizer, Grant
 from server.frames.monitor import FrameRateMonitor
+from server.media.catalog import is_video_track
 from server.moq.errors import ErrorCode
 from server.moq.limits import IngressLimits, MoqLimits, TokenBucket
 from server.moq.relay_core import ConnId, ConnStats, RelayCore
@@ -329,7 +330,7 @@ class Relay:
 
     def _on_frame(self, track: tuple[str, str], size: int, fanout_s: float) -> None:
         broadcast, name = track
-        if name != "video":
+        if not is_video_track(name):  # "video", or "video.N" after an encoded-size change
             return
         monitor = self.monitors.get(broadcast)
         if monitor is None:

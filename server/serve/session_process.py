@@ -44,6 +44,7 @@ def write_status(path: Path, state: str, live: LiveSession | None = None) -> Non
             upscaler=status.upscaler,
             scale=status.scale,
             frame_generation=status.frame_generation,
+            encoded=status.encoded,
             quality=status.quality,
             quality_reason=status.quality_reason,
             expected_psnr_db=status.expected_psnr_db,

@@ -34,6 +34,7 @@ class StatusReporter:
             scale=float(scale) if isinstance(scale, int | float) else None,
             frame_generation=fg if isinstance(fg := state.get("frame_generation"), bool) else None,
             cache_policy=cp if isinstance(cp := state.get("cache_policy"), str) else None,
+            encoded=e if isinstance(e := state.get("encoded"), str) else None,
             quality=q if isinstance(q := state.get("quality"), str) else None,
             quality_reason=r if isinstance(r := state.get("quality_reason"), str) else None,
             expected_psnr_db=(

@@ -235,6 +235,7 @@ class Supervisor:
                     "upscaler": status.get("upscaler", s.config.upscaler),
                     "scale": status.get("scale", round(s.config.scale, 3)),
                     "frame_generation": status.get("frame_generation"),
+                    "encoded": status.get("encoded"),
                     # Adaptive quality: auto or fixed, why this setting, and the picture
                     # the speed-against-error table expects of it.
                     "quality": status.get("quality"),

@@ -5,7 +5,9 @@ It publishes three tracks and listens for viewers' inputs:
 - ``catalog.json``: the hang catalog (codec, size, the CMAF init segment); each
   subscriber gets one group holding the whole JSON.
 - ``video``: one CMAF fragment (moof+mdat) per frame, a new group at each
-  keyframe, so any group is decodable from its first frame.
+  keyframe, so any group is decodable from its first frame. When the encoded size
+  changes, the video moves to a new track (``video.1``, ``video.2``...) named by a new
+  catalog (:meth:`GameBroadcast.switch_video`).
 - ``timing``: one JSON record per video frame, in groups numbered like the
   video's (see timing_track.py); with audio on, also one ``"kind": "audio"`` record
   per audio packet (its stage stamps) in the same groups.
@@ -98,7 +100,11 @@ class GameBroadcast:
     ) -> None:
         """``on_input_ended(source)``: a viewer's input broadcast ended (it left)."""
         self.name = paths.normalize(name)
-        self.tracks = TRACKS if audio else SILENT_TRACKS
+        self._static_tracks = TRACKS if audio else SILENT_TRACKS
+        # The video track of the size encoded now: ``video`` until the first size change
+        # (switch_video), then ``video.1``... A subscriber of an older one keeps its
+        # subscription (it follows the catalog and closes it) but gets no more groups.
+        self.video_track = VIDEO_TRACK
         self.catalog_json = catalog_json
         self.input_prefix = paths.join(self.name, "input")
         self.stats = BroadcastStats()
@@ -120,6 +126,13 @@ class GameBroadcast:
         # What the stream runs now (upscaler, scale), sent in every timing record so a
         # page that joins later shows the server's settings, not its own defaults.
         self.stream_state: dict[str, str | float | bool] = {}
+
+    @property
+    def tracks(self) -> tuple[str, ...]:
+        """The tracks a subscriber may ask for now."""
+        if self.video_track == VIDEO_TRACK:
+            return self._static_tracks
+        return tuple(self.video_track if t == VIDEO_TRACK else t for t in self._static_tracks)
 
     # -- session lifecycle ------------------------------------------------------------
 
@@ -200,6 +213,23 @@ class GameBroadcast:
             if sub.track == CATALOG_TRACK:
                 self._send_catalog(request_id, sub)
 
+    def switch_video(self, track: str, catalog_json: bytes) -> None:
+        """The encoded size changed: publish from now on on ``track``, described by
+        ``catalog_json`` (sent to every catalog subscriber at once). Call it before
+        publishing the new size's first frame (an IDR), which opens the new track's
+        first group. The old track's open groups end here, complete."""
+        if track == self.video_track:
+            return
+        session = self._session
+        for sub in self._subscribers.values():
+            if sub.track == self.video_track and sub.group_stream is not None:
+                if session is not None and not session.closed:
+                    session.finish_group(sub.group_stream)
+                sub.group_stream = None
+        log.info("video now on track %s", track)
+        self.video_track = track
+        self.set_catalog(catalog_json)
+
     def set_status(self, status_json: bytes) -> None:
         """A new status record: a new group for every status subscriber."""
         self.status_json = status_json
@@ -251,7 +281,7 @@ class GameBroadcast:
     def _count_subscribers(self) -> None:
         counts = dict.fromkeys(self.tracks, 0)
         for sub in self._subscribers.values():
-            counts[sub.track] += 1
+            counts[sub.track] = counts.get(sub.track, 0) + 1  # an old video track too
         self.stats.subscribers = counts
 
     # -- media ---------------------------------------------------------------------------
@@ -269,7 +299,7 @@ class GameBroadcast:
         self.stats.frames_published += 1
         if session is None or session.closed:
             return
-        video = [(r, s) for r, s in self._subscribers.items() if s.track == VIDEO_TRACK]
+        video = [(r, s) for r, s in self._subscribers.items() if s.track == self.video_track]
         timing = [(r, s) for r, s in self._subscribers.items() if s.track == TIMING_TRACK]
         self._advance_groups(session, video + timing, encoded.keyframe)
         stamp(meta.stamps, Stage.PUBLISH)

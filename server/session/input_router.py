@@ -52,6 +52,7 @@ class InputRouter:
         on_scale_request: Callable[[float], None] | None = None,
         on_frame_generation: Callable[[bool], None] | None = None,
         on_cache_policy: Callable[[str | None], None] | None = None,
+        on_encode_scale: Callable[[float], None] | None = None,
         on_control_result: Callable[[ControlResult], None] | None = None,
         on_message: Callable[[str, ViewerMessage], None] | None = None,
         color_only: bool = False,
@@ -71,6 +72,8 @@ class InputRouter:
         self.on_upscaler_set = on_upscaler_set
         self.on_scale_request = on_scale_request
         self.on_frame_generation = on_frame_generation
+        # The encoder's size (the session's set_encode_scale); None: not adjustable here.
+        self.on_encode_scale = on_encode_scale
         # The worker's cache policy after a switch it accepted (None: the method has none).
         self.on_cache_policy = on_cache_policy
         # One request talks to the worker at a time, in arrival order (asyncio.Lock is
@@ -199,11 +202,12 @@ class InputRouter:
         upscaler: str | None = None,
         scale: float | None = None,
         frame_generation: bool | None = None,
+        encode_scale: float | None = None,
     ) -> int | None:
         """A setting the session chose itself (the quality controller): the same path,
         checks and log lines as a person's control request from ``source``. Returns the
         request's seq (its result carries it), None when it asks nothing."""
-        if upscaler is None and scale is None and frame_generation is None:
+        if upscaler is None and scale is None and frame_generation is None and encode_scale is None:
             return None
         self._auto_seq += 1
         message = ControlMessage(
@@ -212,6 +216,7 @@ class InputRouter:
             upscaler=upscaler,
             scale=scale,
             frame_generation=frame_generation,
+            encode_scale=encode_scale,
         )
         self._control(source, message)
         return self._auto_seq
@@ -234,8 +239,9 @@ class InputRouter:
         problems = []
         if not requested:
             problems.append(
-                "empty control request: set upscaler, scale, cache_policy, frame_generation "
-                "and/or the quality goal (quality, preference, min_scale, max_scale, methods)"
+                "empty control request: set upscaler, scale, cache_policy, frame_generation, "
+                "encode_scale and/or the quality goal (quality, preference, min_scale, "
+                "max_scale, methods)"
             )
         if message.upscaler is not None and message.upscaler not in registry.available():
             problems.append(
@@ -255,6 +261,8 @@ class InputRouter:
         for name in ("upscaler", "cache_policy"):
             if name in requested and self.worker_control is None:
                 problems.append(f"{name}: this session has no worker control socket")
+        if message.encode_scale is not None and self.on_encode_scale is None:
+            problems.append("encode_scale: this session's encoder size is fixed")
         if problems:
             # Nothing of a refused request is applied: a half-applied one is harder to read.
             self._report(
@@ -285,6 +293,10 @@ class InputRouter:
             )
             if self.on_frame_generation is not None:
                 self.on_frame_generation(message.frame_generation)
+        if message.encode_scale is not None:
+            assert self.on_encode_scale is not None  # refused above otherwise
+            log.info("encode scale %.3g requested by %s", message.encode_scale, source)
+            self.on_encode_scale(message.encode_scale)
         result = ControlResult(seq=message.seq, source=source, accepted=True, requested=requested)
         if message.upscaler is not None or message.cache_policy is not None:
             # The worker answers; the result waits for its reply.

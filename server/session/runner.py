@@ -25,8 +25,14 @@ from server.frames.monitor import FrameRateMonitor
 from server.frames.ring import FrameRing
 from server.game.sounds import GameSounds, SoundSource
 from server.media.audio_encode import OpusEncoder
-from server.media.catalog import AudioSection, audio_section, catalog_for
-from server.media.encode import EncoderConfig, VideoEncoder
+from server.media.catalog import (
+    AudioSection,
+    audio_section,
+    catalog_for,
+    catalog_of,
+    video_track_name,
+)
+from server.media.encode import EncodedConfig, EncoderConfig, VideoEncoder, encoded_size
 from server.moq.events import Event
 from server.ops.redact import redact_url
 from server.quic.client import WtConnectError
@@ -101,6 +107,7 @@ class StreamingSession:
     ) -> None:
         """``sound``: what the audio track plays (default: the reference game's sounds)."""
         self.settings = settings
+        self.display = display
         self._frame_tap = frame_tap
         self.ring_u = ring_u
         self.encoder = VideoEncoder(
@@ -126,6 +133,7 @@ class StreamingSession:
             on_scale_request=self._scale_requested,
             on_frame_generation=self._frame_generation_set,
             on_cache_policy=self._cache_policy_set,
+            on_encode_scale=self._encode_scale_set,
             color_only=settings.source != "game",
             gamepad_keys=settings.gamepad,
             on_message=self.rate.on_message,
@@ -152,6 +160,7 @@ class StreamingSession:
                     bitrate=cfg.bitrate,
                     frame_ms=cfg.frame_us // 1000,
                 )
+        self._audio_section = audio
         self.audio: AudioCapture | None = None
         self.broadcast = GameBroadcast(
             settings.broadcast,
@@ -173,6 +182,7 @@ class StreamingSession:
             self.broadcast.stream_state["frame_generation"] = settings.frame_generation
         if settings.cache_policy is not None:
             self.broadcast.stream_state["cache_policy"] = settings.cache_policy
+        self.broadcast.stream_state["encoded"] = f"{display.width}x{display.height}"
         self.link: MoqLink | None = None
         self.connected = asyncio.Event()
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -205,6 +215,10 @@ class StreamingSession:
     def _frame_generation_set(self, on: bool) -> None:
         self._click()
         self.broadcast.stream_state["frame_generation"] = on
+
+    def _encode_scale_set(self, scale: float) -> None:
+        self._click()
+        self.set_encode_scale(scale)
 
     def _cache_policy_set(self, policy: str | None) -> None:
         self._click()
@@ -277,7 +291,32 @@ class StreamingSession:
         self.router.forget(source)
         self.rate.forget(source)
 
+    def set_encode_scale(self, scale: float) -> tuple[int, int]:
+        """Encode at the display size / ``scale`` (>= 1) from the next frame on; returns
+        the size (even, rounded down). The viewers follow through a new catalog and
+        video track (see _publish); 1 returns to the display size."""
+        width, height = encoded_size(self.display, scale)
+        self.encoder.set_encoded_size(width, height)
+        return width, height
+
+    def _switch_video(self, config: EncodedConfig) -> None:
+        track = video_track_name(config.generation)
+        cfg = self.encoder.config
+        catalog = catalog_of(config, cfg.fps, cfg.target_bitrate, track, self._audio_section)
+        self.broadcast.switch_video(track, catalog.to_json())
+        self.stream_state["encoded"] = f"{config.width}x{config.height}"
+        log.info(
+            "encoding at %dx%d (display %dx%d) on track %s",
+            config.width,
+            config.height,
+            self.display.width,
+            self.display.height,
+            track,
+        )
+
     def _publish(self, frame: CapturedFrame) -> None:
+        if frame.encoded.new_config is not None:
+            self._switch_video(frame.encoded.new_config)
         self.broadcast.publish_frame(frame.encoded, frame.meta)
         self.rate.frame_sent(frame.encoded)
         link = self.link

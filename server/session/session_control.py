@@ -45,6 +45,14 @@ class SessionControl(BaseModel):
         description="render every other frame and predict the rest from the last render "
         "(the stream keeps its frame rate; the game's render rate halves)",
     )
+    encode_scale: float | None = Field(
+        default=None,
+        ge=1.0,
+        le=4.0,
+        allow_inf_nan=False,
+        description="display / encoded size: the encoder scales the upscaled picture down "
+        "(1: the display size); the viewers follow a new catalog and video track",
+    )
 
     quality: Literal["auto", "fixed"] | None = Field(
         default=None,
@@ -105,6 +113,9 @@ class StatusRecord(BaseModel):
         default=None,
         description="the layer-cache policy the worker runs, as configured at start or "
         "reported at the last switch (null: the method has no cache)",
+    )
+    encoded: str | None = Field(
+        default=None, description="the size the encoder sends now, WIDTHxHEIGHT"
     )
     quality: str | None = Field(
         default=None, description="auto (adaptive quality chooses) or fixed"
