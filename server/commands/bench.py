@@ -16,6 +16,8 @@ BENCHMARKS: dict[str, str] = {
     "serve": "upcast serve with N sessions: fps each holds, before and after a worker is killed",
     "adaptive": "adaptive quality against fixed settings, 1-N sessions, a CPU hog mid-run: "
     "viewer fps held, switches, the table's expected picture",
+    "encode_scale": "encoding below the display size: encode ms saved against PSNR lost "
+    "(the decoded picture drawn at display size) per scene and render scale",
     "compile_start": "upscaler compile=True at a worker start: inductor cache cold and warm",
     "reframe": "layer caching on the neural upscaler: policies, levels, speedup against FLIP",
     "adversary": "relay under attack scenarios: good viewers' fps, relay CPU and RSS, refusals",
