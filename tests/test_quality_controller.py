@@ -56,6 +56,9 @@ def test_the_table_is_what_the_reports_say() -> None:
         lambda t: t["methods"]["bilinear"]["psnr_db"]["static"].__setitem__(0, float("nan")),
         lambda t: t["methods"]["bilinear"].__setitem__("scales", [2.0, 1.5, 3.0]),
         lambda t: t.__setitem__("methods", {}),
+        lambda t: t["encode"]["loss_db"][0].__setitem__(1, -1.0),
+        lambda t: t["encode"]["scales"].__setitem__(0, 1.25),
+        lambda t: t["encode"]["ms_ratio"].pop(),
     ],
 )
 def test_a_damaged_table_is_refused_with_a_reason(damage: object) -> None:
@@ -200,7 +203,9 @@ def test_a_step_up_that_does_not_hold_goes_back_and_is_not_retried_at_once() -> 
 
 def test_a_host_that_cannot_hold_even_the_lowest_setting_says_so_once() -> None:
     c = controller()
-    host = SimulatedHost(cores=0.5, controllers=[c])
+    # The cheapest setting (bilinear at 4x, frame generation, encoded at 1/3) takes
+    # 0.55 of a simulated core at 30 fps.
+    host = SimulatedHost(cores=0.4, controllers=[c])
     host.run(60.0)
     assert c.state.at_floor
     assert "lowest setting" in c.state.reason
@@ -351,3 +356,85 @@ def test_frame_generation_that_saves_nothing_here_is_learned() -> None:
     assert model.predict(fg).p50["render"] == pytest.approx(20.0, rel=0.05)
     assert model.predict(fg).cpu_cores(30.0) >= model.predict(full).cpu_cores(30.0)
     assert prior > 0
+
+
+# -- the encoded size ------------------------------------------------------------------
+
+
+def test_the_model_prices_a_smaller_encoded_size_from_the_benchmark() -> None:
+    model = QualityModel(load_figures(), DISPLAY_PIXELS)
+    for scene in ("still", "fast"):
+        full = model.expected_psnr(Setting("bilinear", 4.0), scene)
+        half = model.expected_psnr(Setting("bilinear", 4.0, encode_scale=2.0), scene)
+        third = model.expected_psnr(Setting("bilinear", 4.0, encode_scale=3.0), scene)
+        assert full > half > third
+        # Encoding at half a picture rendered at a quarter loses next to nothing; at half
+        # a picture rendered at half, the upscaler's detail is lost: more.
+        assert full - half < 0.1
+        loss_2x = model.expected_psnr(Setting("bilinear", 2.0), scene) - model.expected_psnr(
+            Setting("bilinear", 2.0, encode_scale=2.0), scene
+        )
+        assert loss_2x > full - half
+    # A size the benchmark did not measure is never expected to look good.
+    assert model.expected_psnr(Setting("bilinear", 4.0, encode_scale=2.5), "slow") == -math.inf
+    # Encode time: measured at the display size, the smaller size is predicted with the
+    # benchmark's ratio until it is measured itself.
+    for _ in range(4):
+        model.learn(Setting("bilinear", 4.0), {"encode": 10.0}, {"encode": 12.0})
+    ratio = load_figures().encode
+    assert ratio is not None
+    predicted = model.predict(Setting("bilinear", 4.0, encode_scale=2.0)).p50["encode"]
+    assert predicted == pytest.approx(10.0 * ratio.ms_ratio[ratio.scales.index(2.0)])
+    for _ in range(6):
+        model.learn(Setting("bilinear", 4.0, encode_scale=2.0), {"encode": 7.0}, {"encode": 8.0})
+    assert model.predict(Setting("bilinear", 4.0, encode_scale=2.0)).p50["encode"] == (
+        pytest.approx(7.0, rel=0.05)
+    )
+
+
+def test_no_candidate_encodes_below_its_render_size() -> None:
+    c = controller()
+    grid = c._candidates()
+    assert {s.encode_scale for s in grid} == {1.0, 1.5, 2.0, 3.0}
+    assert all(s.encode_scale <= s.scale + 1e-6 for s in grid)
+
+
+def test_the_encoded_size_goes_down_last_and_the_rate_holds() -> None:
+    """Three sessions on two simulated cores cannot hold 30 fps at the display size even
+    at the cheapest render; at a smaller encoded size they can. One session alone never
+    gives up the display size: something cheaper always fits first."""
+    alone = controller()
+    host = SimulatedHost(cores=2.0, controllers=[alone], hog_cores=lambda t: 1.0 if t < 40 else 0)
+    host.run(80.0)
+    assert all("encoded at" not in line for _, _, line in host.log), host.log
+    sessions = [controller() for _ in range(3)]
+    host = SimulatedHost(cores=2.0, controllers=sessions)
+    host.run(90.0)
+    for i in range(3):
+        assert min(host.fps_between(i, 70.0, 90.0)) >= 0.9 * 30.0, host.log
+    assert any(c.setting.encode_scale > 1.0 for c in sessions), host.log
+    # In steady state the sizes stay: nobody flips between encoded sizes.
+    assert host.switches_between(60.0, 90.0) <= 2, host.log
+
+
+def test_a_pinned_or_forbidden_encoded_size_stays() -> None:
+    pinned = controller()
+    pinned.pin(encode_scale=2.0)
+    host = SimulatedHost(cores=2.0, controllers=[pinned])
+    host.run(40.0)
+    assert pinned.setting.encode_scale == 2.0
+    assert all(s.encode_scale == 2.0 for s in pinned._candidates())
+    # Four sessions on two simulated cores: at the display size even the cheapest render
+    # misses; a goal that forbids the smaller size stays at the floor, one that allows it
+    # delivers more frames.
+    rates = {}
+    for allowed in (False, True):
+        goal = QualityGoal(target_fps=30.0, encode_size=allowed)
+        four = [controller(goal=goal) for _ in range(4)]
+        host = SimulatedHost(cores=2.0, controllers=four)
+        host.run(60.0)
+        rates[allowed] = sum(sum(host.fps_between(i, 40.0, 60.0)) for i in range(4))
+        if not allowed:
+            assert all(c.setting.encode_scale == 1.0 for c in four), host.log
+            assert all(c.state.at_floor for c in four), host.log
+    assert rates[True] > 1.2 * rates[False]

@@ -9,6 +9,9 @@ method on its control socket), as the source ``quality-auto``, so it is refused 
 logged the same way; it is one log line with its reason, and the stream state (the
 timing track: the page's overlay, ``upcast bench``) carries the choice and why.
 
+The encoded size goes through the same router (``encode_scale``: the session's
+encoder scales the picture down and the viewers follow a new catalog).
+
 A person's accepted control request pins what it set (``quality: "auto"`` in a later
 request lets go); ``--quality fixed`` never switches anything.
 """
@@ -81,6 +84,11 @@ class QualityMetrics:
             registry=registry,
         )
         self.scale = Gauge("upcast_quality_render_scale", "Render scale chosen", registry=registry)
+        self.encode_scale = Gauge(
+            "upcast_quality_encode_scale",
+            "Encoded scale chosen (display / encoded size)",
+            registry=registry,
+        )
         self.headroom = Gauge(
             "upcast_quality_host_idle_cores", "Host cores idle at the last check", registry=registry
         )
@@ -147,16 +155,19 @@ class SessionQuality:
             self.enabled = False
             log.info("quality: fixed (set by %s)", result.source)
         method, scale, fg = req.get("upscaler"), req.get("scale"), req.get("frame_generation")
-        if method is not None or scale is not None or fg is not None:
+        encode = req.get("encode_scale")
+        if method is not None or scale is not None or fg is not None or encode is not None:
             self.controller.pin(
                 method=method if isinstance(method, str) else None,
                 scale=float(scale) if isinstance(scale, int | float) else None,
                 frame_generation=fg if isinstance(fg, bool) else None,
+                encode_scale=float(encode) if isinstance(encode, int | float) else None,
             )
             if self.enabled:
+                pinned = ("upscaler", "scale", "frame_generation", "encode_scale")
                 log.info(
                     "quality: %s pinned by a control request from %s (auto adapts the rest)",
-                    ", ".join(k for k in ("upscaler", "scale", "frame_generation") if k in req),
+                    ", ".join(k for k in pinned if k in req),
                     result.source,
                 )
         self._publish()
@@ -244,6 +255,9 @@ class SessionQuality:
             frame_generation=(
                 new.frame_generation if new.frame_generation != old.frame_generation else None
             ),
+            encode_scale=(
+                new.encode_scale if abs(new.encode_scale - old.encode_scale) > 1e-6 else None
+            ),
         )
 
     def _publish(self) -> None:
@@ -261,6 +275,7 @@ class SessionQuality:
             if math.isfinite(st.expected_psnr_db):
                 self._metrics.expected.set(st.expected_psnr_db)
             self._metrics.scale.set(st.setting.scale)
+            self._metrics.encode_scale.set(st.setting.encode_scale)
             self._metrics.switches.set(st.switches)
             if st.headroom_cores is not None:
                 self._metrics.headroom.set(st.headroom_cores)

@@ -28,6 +28,11 @@ In the manner of libwebrtc's CPU adaptation and a game engine's dynamic resoluti
   the monitor's window holds only frames of the new setting; nothing is judged in
   the first ``WARMUP_S`` (start-up: kernels compile, caches fill).
 
+The encoded size is the last resort before the frame rate: a step down lowers it
+only when no setting at the current encoded size fits, and any change of it must
+gain ``ENCODE_SWITCH_COST_DB`` more (every viewer moves to a new track and waits for
+its first keyframe). A step up moves it one step of the benchmark's ladder at a time.
+
 Degradation preference (WebRTC's ``degradationPreference``): ``framerate`` (games:
 the rate holds, the picture gives), ``resolution`` (never below the picture it
 started with: the rate falls to what the host carries) and ``balanced`` (the rate
@@ -63,6 +68,7 @@ UP_MARGIN = 0.75
 UP_HOLD_S = 4.0
 UP_MIN_GAIN_DB = 0.2
 RESET_COST_DB = 0.15
+ENCODE_SWITCH_COST_DB = 0.3
 HOST_RESERVE = 0.1  # of the host's cores, never planned for
 PROBATION_S = 10.0
 BLOCK_S = 20.0
@@ -83,6 +89,7 @@ class QualityGoal:
     max_scale: float = 4.0
     methods: tuple[str, ...] = ()  # empty: every method with figures
     frame_generation: bool = True  # whether the controller may predict frames
+    encode_size: bool = True  # whether it may encode below the display size
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.target_fps) and self.target_fps > 0):
@@ -101,6 +108,7 @@ class SourceLimits:
     scale: bool = True
     temporal: bool = True
     frame_generation: bool = True
+    encode_size: bool = True  # the session can change its encoder's size
 
 
 @dataclass(frozen=True)
@@ -155,6 +163,7 @@ class _Pins:
     method: str | None = None
     scale: float | None = None
     frame_generation: bool | None = None
+    encode_scale: float | None = None
 
 
 @dataclass
@@ -191,6 +200,7 @@ class QualityController:
         method: str | None = None,
         scale: float | None = None,
         frame_generation: bool | None = None,
+        encode_scale: float | None = None,
     ) -> None:
         """Hold the given fields where a person set them (a control request did): the
         controller adapts only the others. The setting takes them at once."""
@@ -200,11 +210,14 @@ class QualityController:
             self._pins.scale = scale
         if frame_generation is not None:
             self._pins.frame_generation = frame_generation
+        if encode_scale is not None:
+            self._pins.encode_scale = encode_scale
         now = self.state.setting
         self.state.setting = Setting(
             method if method is not None else now.method,
             scale if scale is not None else now.scale,
             frame_generation if frame_generation is not None else now.frame_generation,
+            encode_scale if encode_scale is not None else now.encode_scale,
         )
 
     def unpin(self) -> None:
@@ -283,7 +296,18 @@ class QualityController:
                 or (g.frame_generation and self.limits.frame_generation)
             )
         )
-        return methods_ok and scale_ok and fg_ok
+        if p.encode_scale is not None:
+            encode_ok = abs(setting.encode_scale - p.encode_scale) < 1e-6
+        elif setting.encode_scale == 1.0:
+            encode_ok = True
+        else:
+            encode_ok = (
+                g.encode_size
+                and self.limits.encode_size
+                and setting.encode_scale in self.model.encode_scales()
+                and setting.encode_scale <= setting.scale + 1e-6
+            )
+        return methods_ok and scale_ok and fg_ok and encode_ok
 
     def _conform(self, m: Measurement) -> Decision | None:
         """The goal changed under the current setting (another method list, bounds, a
@@ -362,12 +386,32 @@ class QualityController:
             fgs = [False, True]
         else:
             fgs = [False]
-        grid = [s for s in settings_grid(methods, scales, fgs) if s.method in table]
+        if self._pins.encode_scale is not None:
+            encodes = [self._pins.encode_scale]
+        elif self.goal.encode_size and self.limits.encode_size:
+            encodes = self.model.encode_scales()
+        else:
+            encodes = [1.0]
+        grid = [s for s in settings_grid(methods, scales, fgs, encodes) if s.method in table]
         return grid
 
     def _blocked_now(self, setting: Setting, now: float) -> bool:
         block = self._blocked.get(setting)
         return block is not None and now < block.until
+
+    def _switch_cost(self, a: Setting, b: Setting) -> float:
+        """dB a switch from ``a`` to ``b`` must gain beyond the picture it buys."""
+        cost = RESET_COST_DB if self._resets_history(a, b) else 0.0
+        if abs(a.encode_scale - b.encode_scale) > 1e-6:
+            cost += ENCODE_SWITCH_COST_DB
+        return cost
+
+    def _encode_step(self, a: Setting, b: Setting) -> int:
+        """How many steps of the encoded-scale ladder lie between ``a`` and ``b``."""
+        ladder = self.model.encode_scales()
+        if a.encode_scale not in ladder or b.encode_scale not in ladder:
+            return 0 if abs(a.encode_scale - b.encode_scale) < 1e-6 else len(ladder)
+        return abs(ladder.index(a.encode_scale) - ladder.index(b.encode_scale))
 
     def _resets_history(self, a: Setting, b: Setting) -> bool:
         if not (_is_temporal(a.method) or _is_temporal(b.method)):
@@ -405,10 +449,11 @@ class QualityController:
                 continue
             fits_stages = all(times.p50[s] <= budget * DOWN_MARGIN for s in STAGES)
             if fits_stages and cpu <= cpu_allowed:
-                penalty = RESET_COST_DB if self._resets_history(current, cand) else 0.0
-                fitting.append((quality - penalty, cand, times))
-        if fitting:
-            _, best, _ = max(fitting, key=lambda x: (x[0], -x[2].cpu_cores(1.0)))
+                fitting.append((quality - self._switch_cost(current, cand), cand, times))
+        # The encoded size goes down last: only when nothing at the current size fits.
+        keep = [f for f in fitting if f[1].encode_scale <= current.encode_scale + 1e-6]
+        if keep or fitting:
+            _, best, _ = max(keep or fitting, key=lambda x: (x[0], -x[2].cpu_cores(1.0)))
             return self._switch(m, best, "down", miss)
         if cheapest is None or cheapest[1] == current or self.goal.preference == "resolution":
             self.state.at_floor = True
@@ -434,14 +479,17 @@ class QualityController:
                 continue
             if abs(cand.scale - current.scale) > self._up_reach(current) + 1e-6:
                 continue
+            if self._encode_step(current, cand) > 1:
+                continue
             times = self.model.predict(cand)
             if any(times.p50[s] > budget * UP_MARGIN for s in STAGES):
                 continue
             extra = times.cpu_cores(self.goal.target_fps) - here_cpu
             if extra > 0 and extra > spare:
                 continue
-            penalty = RESET_COST_DB if self._resets_history(current, cand) else 0.0
-            gain = self.model.expected_psnr(cand, m.scene) - here_q - penalty
+            gain = (
+                self.model.expected_psnr(cand, m.scene) - here_q - self._switch_cost(current, cand)
+            )
             if gain >= UP_MIN_GAIN_DB and (best is None or gain > best[0]):
                 best = (gain, cand, extra)
         if best is None:

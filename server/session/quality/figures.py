@@ -1,9 +1,11 @@
 """The speed-against-error table adaptive quality rests on, derived from measurements.
 
-Two committed reports are its source: ``docs/reports/eval_upscalers.json`` (every
+Three committed reports are its source: ``docs/reports/eval_upscalers.json`` (every
 upscaler's time and PSNR against the game's ground truth at 1.5x, 2x and 3x, per
-scene) and ``docs/reports/framegen.json`` (the frame predictor's time and PSNR per
-scene). ``python -m server.session.quality.figures`` rewrites ``figures.json`` beside
+scene), ``docs/reports/framegen.json`` (the frame predictor's time and PSNR per
+scene) and ``docs/reports/encode_scale.json`` (encoding below the display size: the
+encoder's time against the display size's, and the decoded picture's PSNR lost, per
+render scale). ``python -m server.session.quality.figures`` rewrites ``figures.json`` beside
 this file from them; ``tests/test_quality_figures.py`` fails when the two disagree,
 so the table is never typed in and cannot drift from the reports. The table ships in
 the package (the reports do not: the Docker build context leaves docs/reports out).
@@ -29,6 +31,7 @@ FIGURES_PATH = Path(__file__).with_name("figures.json")
 ROOT = Path(__file__).resolve().parents[3]
 EVAL_REPORT = ROOT / "docs" / "reports" / "eval_upscalers.json"
 FRAMEGEN_REPORT = ROOT / "docs" / "reports" / "framegen.json"
+ENCODE_REPORT = ROOT / "docs" / "reports" / "encode_scale.json"
 PREDICTOR = "mpe16"  # the worker's default predictor (server/worker/prediction.py)
 # PSNR of a prediction that is exact (a still scene predicts itself): the report
 # writes 100 dB there; any finite cap far above the upscalers' figures serves.
@@ -50,6 +53,18 @@ class MethodFigures:
 
 
 @dataclass(frozen=True)
+class EncodeFigures:
+    """Encoding below the display size: per encoded scale (display / encoded, ascending,
+    1 first) the encoder's time against scale 1's, and per render scale the PSNR lost
+    against scale 1 (None where not measured: encoded smaller than rendered)."""
+
+    scales: tuple[float, ...]
+    ms_ratio: tuple[float, ...]
+    render_scales: tuple[float, ...]
+    loss_db: tuple[tuple[float | None, ...], ...]  # [render scale][encoded scale]
+
+
+@dataclass(frozen=True)
 class SpeedErrorFigures:
     display_pixels: int  # the size the times were measured at
     machine: str
@@ -59,6 +74,7 @@ class SpeedErrorFigures:
     predict_psnr_db: Mapping[str, float]  # scene -> PSNR of predicted frames
     render_ms: float  # the built-in renderer, median, at predict_pixels
     scenes: tuple[str, ...]
+    encode: EncodeFigures | None = None  # None: the encoded size stays the display's
 
 
 def _floats(values: Any, what: str) -> tuple[float, ...]:
@@ -94,12 +110,33 @@ def parse_figures(raw: Mapping[str, Any]) -> SpeedErrorFigures:
             predict_psnr_db=predict,
             render_ms=float(raw["render_ms"]),
             scenes=tuple(str(s) for s in raw["scenes"]),
+            encode=_parse_encode(raw["encode"]) if raw.get("encode") is not None else None,
         )
     except (KeyError, TypeError, AttributeError) as exc:
         raise FiguresError(f"malformed speed-against-error figures: {exc!r}") from None
     if not methods:
         raise FiguresError("no method in the figures")
     return figures
+
+
+def _parse_encode(raw: Mapping[str, Any]) -> EncodeFigures:
+    scales = _floats(raw["scales"], "encode.scales")
+    if list(scales) != sorted(set(scales)) or scales[0] != 1.0:
+        raise FiguresError("encode.scales must be ascending from 1 without repeats")
+    ratio = _floats(raw["ms_ratio"], "encode.ms_ratio")
+    render = _floats(raw["render_scales"], "encode.render_scales")
+    rows = raw["loss_db"]
+    if len(ratio) != len(scales) or not isinstance(rows, list) or len(rows) != len(render):
+        raise FiguresError("encode: one time ratio per scale and one loss row per render scale")
+    loss: list[tuple[float | None, ...]] = []
+    for row in rows:
+        if not isinstance(row, list) or len(row) != len(scales):
+            raise FiguresError("encode.loss_db: one figure (or null) per encoded scale")
+        values = tuple(None if v is None else float(v) for v in row)
+        if any(v is not None and not (math.isfinite(v) and v >= 0) for v in values):
+            raise FiguresError("encode.loss_db: finite and >= 0, or null")
+        loss.append(values)
+    return EncodeFigures(scales, ratio, render, tuple(loss))
 
 
 def load_figures(path: Path = FIGURES_PATH) -> SpeedErrorFigures:
@@ -168,6 +205,28 @@ def derive_figures(
     }
 
 
+def derive_encode(report: Mapping[str, Any]) -> dict[str, Any]:
+    """The encoded-size part of the table from ``upcast bench encode_scale``'s report:
+    time ratios averaged over its cases, PSNR lost averaged over scenes (never below 0:
+    a smaller size never adds detail; a negative figure is the codec's noise)."""
+    cases = [c for c in report["cases"] if "encode_scale" in c]
+    ref = {(c["scene"], float(c["render_scale"])): c for c in cases if c["encode_scale"] == 1.0}
+    scales = sorted({float(c["encode_scale"]) for c in cases})
+    render = sorted({float(c["render_scale"]) for c in cases})
+    if not ref or scales[:1] != [1.0]:
+        raise FiguresError("the encode_scale report has no encoded scale 1 to compare with")
+    ratios: list[float] = []
+    loss: list[list[float | None]] = [[] for _ in render]
+    for e in scales:
+        pairs = [(c, ref[k]) for c in cases if c["encode_scale"] == e
+                 and (k := (c["scene"], float(c["render_scale"]))) in ref]  # fmt: skip
+        ratios.append(round(_median([c["median_ms"] / r["median_ms"] for c, r in pairs]), 3))
+        for row, s in zip(loss, render, strict=True):
+            lost = [r["psnr_db"] - c["psnr_db"] for c, r in pairs if float(c["render_scale"]) == s]
+            row.append(round(max(0.0, sum(lost) / len(lost)), 3) if lost else None)
+    return {"scales": scales, "ms_ratio": ratios, "render_scales": render, "loss_db": loss}
+
+
 def _median(values: list[Any]) -> float:
     ordered = sorted(float(v) for v in values)
     mid = len(ordered) // 2
@@ -175,14 +234,20 @@ def _median(values: list[Any]) -> float:
 
 
 def derive_from_reports(
-    eval_path: Path = EVAL_REPORT, framegen_path: Path = FRAMEGEN_REPORT
+    eval_path: Path = EVAL_REPORT,
+    framegen_path: Path = FRAMEGEN_REPORT,
+    encode_path: Path = ENCODE_REPORT,
 ) -> dict[str, Any]:
     try:
         eval_report = json.loads(eval_path.read_text())
         framegen_report = json.loads(framegen_path.read_text())
+        encode_report = json.loads(encode_path.read_text())
     except (OSError, ValueError) as exc:
         raise FiguresError(f"cannot read the reports: {exc}") from None
-    return derive_figures(eval_report, framegen_report)
+    table = derive_figures(eval_report, framegen_report)
+    table["source"].append("docs/reports/encode_scale.json")
+    table["encode"] = derive_encode(encode_report)
+    return table
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -193,9 +258,10 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--eval-report", type=Path, default=EVAL_REPORT)
     parser.add_argument("--framegen-report", type=Path, default=FRAMEGEN_REPORT)
+    parser.add_argument("--encode-report", type=Path, default=ENCODE_REPORT)
     parser.add_argument("--out", type=Path, default=FIGURES_PATH)
     args = parser.parse_args(argv)
-    table = derive_from_reports(args.eval_report, args.framegen_report)
+    table = derive_from_reports(args.eval_report, args.framegen_report, args.encode_report)
     parse_figures(table)  # what we write must load
     args.out.write_text(json.dumps(table, indent=1) + "\n")
     print(f"wrote {args.out} ({len(table['methods'])} methods)")

@@ -6,7 +6,11 @@ render scale, averaged over the evaluation's scenes of the current scene class,
 interpolated linearly in log(scale) between the measured scales and extended with
 the end slopes outside them. With frame generation every other frame is predicted:
 its error adds (in mean squared error) the predictor's own error for that scene,
-and the two frames' errors average.
+and the two frames' errors average. Encoding below the display size loses what the
+encoded-size benchmark measured on the decoded picture at that render scale
+(interpolated in log(render scale), never below 0): little where the render was
+smaller than the encoded size anyway (0.03 dB encoding at 2x a render at 4x), more
+where the upscaler had detail to keep.
 
 **Time.** Each stage is predicted from its own measurement, never from the table
 alone:
@@ -23,7 +27,8 @@ alone:
   runs, and for one that has not run yet the larger of the last measured ratio of any
   method and the host's slowdown (the render measured against the table's render),
   never under 1; frame generation adds half a prediction;
-- *encode*: as measured (it depends on the display size, which stays).
+- *encode*: as measured at each encoded size; at one not measured yet, the nearest
+  measured one times the benchmark's time ratio between the two sizes.
 
 The CPU a setting takes is the sum of the stage medians at the target rate, in
 cores: the three stages run in separate processes on the same cores.
@@ -49,16 +54,18 @@ STAGES = ("render", "upscale", "encode")
 
 @dataclass(frozen=True)
 class Setting:
-    """What the controller chooses: method, render scale (display / render), and
-    whether every other frame is predicted."""
+    """What the controller chooses: method, render scale (display / render), whether
+    every other frame is predicted, and the encoded scale (display / encoded)."""
 
     method: str
     scale: float
     frame_generation: bool = False
+    encode_scale: float = 1.0
 
     def describe(self) -> str:
         fg = ", frame generation" if self.frame_generation else ""
-        return f"{self.method} at {self.scale:g}x{fg}"
+        enc = f", encoded at 1/{self.encode_scale:g}" if self.encode_scale != 1.0 else ""
+        return f"{self.method} at {self.scale:g}x{fg}{enc}"
 
 
 @dataclass(frozen=True)
@@ -100,8 +107,7 @@ class LearnedCosts:
     """The session's own measurements, smoothed; None until measured."""
 
     render_ms_at: dict[float, tuple[float, float]] = field(default_factory=dict)  # p50, p95
-    encode_p50: float | None = None
-    encode_p95: float | None = None
+    encode_ms_at: dict[float, tuple[float, float]] = field(default_factory=dict)  # by encode scale
     upscale_ratio: dict[str, float] = field(default_factory=dict)
     last_upscale_ratio: float | None = None
     upscale_p95_over_p50: float | None = None
@@ -126,7 +132,31 @@ class QualityModel:
 
     # -- picture ---------------------------------------------------------------------
 
+    def encode_scales(self) -> list[float]:
+        """The encoded scales the benchmark measured (just 1 without its figures)."""
+        enc = self.figures.encode
+        return [1.0] if enc is None else list(enc.scales)
+
+    def encode_loss_db(self, render_scale: float, encode_scale: float) -> float:
+        """PSNR lost by encoding at ``encode_scale`` a picture rendered at ``render_scale``."""
+        enc = self.figures.encode
+        if encode_scale == 1.0 or enc is None:
+            return 0.0
+        if encode_scale not in enc.scales:
+            return math.inf  # not measured: never chosen
+        column = enc.scales.index(encode_scale)
+        points = [(s, row[column]) for s, row in zip(enc.render_scales, enc.loss_db, strict=True)]
+        known = [(s, v) for s, v in points if v is not None]
+        if not known:
+            return math.inf
+        scales, values = zip(*known, strict=True)
+        return max(0.0, _interp_log(tuple(scales), tuple(values), render_scale))
+
     def expected_psnr(self, setting: Setting, scene: SceneClass) -> float:
+        loss = self.encode_loss_db(setting.scale, setting.encode_scale)
+        return self._rendered_psnr(setting, scene) - loss
+
+    def _rendered_psnr(self, setting: Setting, scene: SceneClass) -> float:
         method = self.figures.methods[setting.method]
         scenes = self._scenes(scene, method.psnr_db)
         upscaled = [_interp_log(method.scales, method.psnr_db[s], setting.scale) for s in scenes]
@@ -172,8 +202,12 @@ class QualityModel:
                 _smooth(None if old is None else old[1], max(p50["render"], p95["render"])),
             )
         if _usable(p50, "encode") and _usable(p95, "encode"):
-            lc.encode_p50 = _smooth(lc.encode_p50, p50["encode"])
-            lc.encode_p95 = _smooth(lc.encode_p95, p95["encode"])
+            key = setting.encode_scale
+            old_e = lc.encode_ms_at.get(key)
+            lc.encode_ms_at[key] = (
+                _smooth(None if old_e is None else old_e[0], p50["encode"]),
+                _smooth(None if old_e is None else old_e[1], max(p50["encode"], p95["encode"])),
+            )
         if _usable(p50, "upscale"):
             measured = p50["upscale"]
             if setting.frame_generation:
@@ -212,8 +246,7 @@ class QualityModel:
             predict = self._predict_ms(setting)
             u50 += predict / 2.0
             u95 += predict
-        e50 = lc.encode_p50 if lc.encode_p50 is not None else 0.0
-        e95 = lc.encode_p95 if lc.encode_p95 is not None else e50
+        e50, e95 = self._encode_ms(setting.encode_scale)
         return StageTimes(
             p50={"render": r50, "upscale": u50, "encode": e50},
             p95={"render": r95, "upscale": u95, "encode": e95},
@@ -230,6 +263,25 @@ class QualityModel:
             prior = f.render_ms * self.render_pixels(scale) / f.predict_pixels
             slowest = max(slowest, p50 / prior)
         return min(MAX_SLOWDOWN, slowest)
+
+    def _encode_ms(self, encode_scale: float) -> tuple[float, float]:
+        """(p50, p95) of the encoder at this encoded scale: measured, or the nearest
+        measured scale's times the benchmark's ratio; 0 before anything was measured."""
+        measured = self.learned.encode_ms_at
+        if encode_scale in measured:
+            return measured[encode_scale]
+        if not measured:
+            return 0.0, 0.0
+        nearest = min(measured, key=lambda e: abs(math.log(e) - math.log(encode_scale)))
+        ratio = self._encode_ratio(encode_scale) / self._encode_ratio(nearest)
+        m50, m95 = measured[nearest]
+        return m50 * ratio, m95 * ratio
+
+    def _encode_ratio(self, encode_scale: float) -> float:
+        enc = self.figures.encode
+        if enc is None or encode_scale not in enc.scales:
+            return 1.0
+        return enc.ms_ratio[enc.scales.index(encode_scale)]
 
     def _render_ms(self, px: float) -> tuple[float, float]:
         """(p50, p95) of a full render of ``px`` pixels: a line through what was
@@ -285,6 +337,20 @@ def scale_ladder(low: float, high: float, step: float = 0.25) -> list[float]:
 
 
 def settings_grid(
-    methods: Iterable[str], scales: Iterable[float], frame_generation: Iterable[bool]
+    methods: Iterable[str],
+    scales: Iterable[float],
+    frame_generation: Iterable[bool],
+    encode_scales: Iterable[float] = (1.0,),
 ) -> list[Setting]:
-    return [Setting(m, s, fg) for m in methods for s in scales for fg in frame_generation]
+    """Every combination, less an encoded size below the render size (it would throw
+    the upscaler's work away)."""
+    encodes = list(encode_scales)
+    fgs = list(frame_generation)
+    return [
+        Setting(m, s, fg, e)
+        for m in methods
+        for s in scales
+        for fg in fgs
+        for e in encodes
+        if e <= s + 1e-6
+    ]
