@@ -46,4 +46,6 @@ USER upcast
 EXPOSE 4444/tcp
 HEALTHCHECK --interval=5s --timeout=4s --start-period=60s --retries=10 \
     CMD ["upcast-healthcheck", "http://127.0.0.1:4444/healthz"]
-CMD ["upcast", "--log-format", "json", "serve", "--relay", "http://relay:4443/", "--auth-key", "/secrets/auth.key", "--sessions", "2", "--http-port", "4444"]
+# The demo stack starts both sessions whatever the host can carry (--admission admit);
+# without it, serve refuses a session while another is at its adaptive-quality floor.
+CMD ["upcast", "--log-format", "json", "serve", "--relay", "http://relay:4443/", "--auth-key", "/secrets/auth.key", "--sessions", "2", "--http-port", "4444", "--admission", "admit"]

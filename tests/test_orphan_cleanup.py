@@ -298,6 +298,7 @@ def test_serve_killed_leaves_no_process_ring_or_socket(tmp_path: Path) -> None:
     port, http_port = _free_port(), _free_port()
     log = tmp_path / "serve.log"
     args = ["serve", "--sessions", "2", "--host", "127.0.0.1", "--port", str(port)]
+    args += ["--admission", "admit"]  # both at once: this test is about the kill
     serve = _start([*args, "--http-port", str(http_port), *SMALL], log)
     try:
         _wait_for(serve, log, "2 sessions up")

@@ -438,3 +438,14 @@ def test_a_pinned_or_forbidden_encoded_size_stays() -> None:
             assert all(c.setting.encode_scale == 1.0 for c in four), host.log
             assert all(c.state.at_floor for c in four), host.log
     assert rates[True] > 1.2 * rates[False]
+
+
+def test_the_floor_is_said_while_the_rate_misses_and_cleared_once_it_holds() -> None:
+    """upcast serve admits no new session while one is at its floor: the flag must go
+    when the host can carry the session again (a hog left), not stay until a switch."""
+    c = controller()
+    host = SimulatedHost(cores=2.0, controllers=[c], hog_cores=lambda t: 1.75 if t < 40 else 0.0)
+    host.run(38.0)
+    assert c.state.at_floor, host.log
+    host.run(10.0)
+    assert not c.state.at_floor, host.log

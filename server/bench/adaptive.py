@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import functools
 import os
 import re
 import subprocess
@@ -65,6 +66,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="a busy loop takes one core for the middle third of each case (default: on)",
     )  # fmt: skip
     parser.add_argument("--port", type=int, default=4470, help="relay port (HTTP side: +1)")
+    parser.add_argument(
+        "--admission",
+        choices=("admit", "refuse", "queue"),
+        default="admit",
+        help="upcast serve's admission (admit: every session runs, the default here)",
+    )
 
 
 @dataclass(frozen=True)
@@ -125,6 +132,9 @@ async def _run_case(case: Case, args: argparse.Namespace, report: BenchReport) -
     cmd = [sys.executable, "-m", "server.cli", "serve", "--sessions", str(case.sessions)]
     cmd += ["--display-size", args.display_size, "--fps", f"{args.fps:g}"]
     cmd += ["--port", str(args.port), "--quality", case.mode]
+    # Every session runs, even where admission would refuse one: the bench measures how
+    # N sessions share the host (admission is measured by its own test).
+    cmd += ["--admission", args.admission]
     if case.setting is not None:
         cmd += ["--upscaler", case.setting.method]
         cmd += ["--render-size", _size_for(args.display_size, case.setting.scale)]
@@ -164,7 +174,10 @@ async def _run_serve(
                         (float(r["frames_at"] or 0.0), int(r["frames"]))
                     )
                     setting = Setting(
-                        str(r["upscaler"]), float(r["scale"]), bool(r.get("frame_generation"))
+                        str(r["upscaler"]),
+                        float(r["scale"]),
+                        bool(r.get("frame_generation")),
+                        _encode_scale(args.display_size, r.get("encoded")),
                     )
                     timeline.setdefault(r["broadcast"], []).append((now - start, setting))
             await asyncio.sleep(1.0)
@@ -189,6 +202,23 @@ async def _run_serve(
         if link is not None and not link.closed:
             link.wt.close(0, "bench over")
         stop_child(proc, 60)
+
+
+def _encode_scale(display: str, encoded: object) -> float:
+    """display / encoded width, on the encoded-size ladder (1 when not reported)."""
+    if not isinstance(encoded, str) or "x" not in encoded:
+        return 1.0
+    try:
+        width = int(encoded.lower().split("x")[0])
+        scale = int(display.lower().split("x")[0]) / width
+    except (ValueError, ZeroDivisionError):
+        return 1.0
+    return min(_encode_ladder(), key=lambda e: abs(e - scale))
+
+
+@functools.cache
+def _encode_ladder() -> tuple[float, ...]:
+    return tuple(QualityModel(load_figures(), 1).encode_scales())
 
 
 def _pixels(size: str) -> int:

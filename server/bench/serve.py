@@ -155,6 +155,7 @@ async def _measure(args: argparse.Namespace, report: BenchReport) -> None:
     cmd = [sys.executable, "-m", "server.cli", "serve", "--sessions", str(args.sessions)]
     cmd += ["--render-size", args.render_size, "--display-size", args.display_size]
     cmd += ["--fps", f"{args.fps:g}", "--upscaler", args.upscaler, "--port", str(args.port)]
+    cmd += ["--admission", "admit"]  # N sessions, whatever the host: what is measured
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     proc = subprocess.Popen(cmd, cwd=ROOT, env=env)
     link: MoqLink | None = None

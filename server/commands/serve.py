@@ -68,6 +68,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--web-root", type=Path, default=WEB_ROOT, help="built web client (client_web/dist)"
     )
+    parser.add_argument(
+        "--admission",
+        choices=("refuse", "queue", "admit"),
+        default="refuse",
+        help="refuse (default) or queue a session while a running one cannot hold its frame "
+        "rate even at its cheapest setting (adaptive quality's floor); under both, sessions "
+        "start one after the other as each settles. admit: start every session at once",
+    )
     parser.add_argument("--duration", type=float, default=None, help="stop after SECONDS")
     parser.add_argument(
         "--frame-tap-port",
@@ -185,6 +193,7 @@ async def _main(
     """``key``: the relay's key file and key (tokens are minted with it), None for an
     open external relay."""
     from server.relay.process import RelayProcess
+    from server.serve.admission import Admission
     from server.serve.http_api import ServeHttp
     from server.serve.supervisor import Supervisor
     from server.serve.tokens import no_token, player_minter, publisher_minter, with_token
@@ -212,7 +221,9 @@ async def _main(
         relay_url = watch_base = args.relay if args.relay.endswith("/") else args.relay + "/"
     publisher = no_token if key is None else publisher_minter(key[1])
     player = no_token if key is None else player_minter(key[1])
-    supervisor = Supervisor(sessions, relay_url=relay_url, token_for=publisher)
+    supervisor = Supervisor(
+        sessions, relay_url=relay_url, token_for=publisher, admission=Admission(args.admission)
+    )
     http = ServeHttp(supervisor, relay)
     code = 0
     try:
@@ -231,11 +242,16 @@ async def _main(
                 supervisor.relay_restarted()
             if not announced and supervisor.all_up():
                 announced = True
+                up = 0
                 for s in supervisor.sessions:
+                    if s.admission in ("refused", "queued"):
+                        print(f"session {s.index} {s.admission}: {s.admission_reason}", flush=True)
+                        continue
+                    up += 1
                     page = with_token(f"{watch_base}?broadcast={s.broadcast}", player(s.broadcast))
                     print(f"session {s.index} up: watch at {page}", flush=True)
                 print(
-                    f"upcast serve: {len(sessions)} sessions up; "
+                    f"upcast serve: {up} of {len(sessions)} sessions up; "
                     f"status http://{host}:{http_port}/sessions (Ctrl-C to stop)",
                     flush=True,
                 )

@@ -47,6 +47,7 @@ def write_status(path: Path, state: str, live: LiveSession | None = None) -> Non
             encoded=status.encoded,
             quality=status.quality,
             quality_reason=status.quality_reason,
+            quality_at_floor=status.quality_at_floor,
             expected_psnr_db=status.expected_psnr_db,
             metrics_port=live.metrics_port,
         )

@@ -37,6 +37,7 @@ class StatusReporter:
             encoded=e if isinstance(e := state.get("encoded"), str) else None,
             quality=q if isinstance(q := state.get("quality"), str) else None,
             quality_reason=r if isinstance(r := state.get("quality_reason"), str) else None,
+            quality_at_floor=f if isinstance(f := state.get("quality_at_floor"), bool) else None,
             expected_psnr_db=(
                 float(e) if isinstance(e := state.get("expected_psnr_db"), int | float) else None
             ),

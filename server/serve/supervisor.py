@@ -7,6 +7,10 @@ it again after a backoff (1 s, doubling to 30 s; back to 1 s once a start
 stayed up for a minute). The other sessions share nothing with it but the
 relay, so they never notice. Should the supervisor itself die, SIGKILL included, its
 reaper (server/ops/orphan_guard.py) ends every session's group and removes its files.
+
+Sessions start through admission (server/serve/admission.py): with ``refuse`` or
+``queue`` one after the other, and none while a running session's adaptive quality
+says the host cannot hold even its cheapest setting; ``admit`` starts them all at once.
 """
 
 from __future__ import annotations
@@ -25,6 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from server.ops import orphan_guard
+from server.serve.admission import Admission
 from server.serve.session_process import SOURCE_ENDED_CODE
 from server.serve.spec import SessionSpec
 from server.serve.tokens import TokenMinter, no_token
@@ -57,6 +62,9 @@ class ServedSession:
     backoff_s: float = BACKOFF_MIN_S
     last_exit: int | None = None
     ended: bool = False  # its application exited for good (source x11, app_exit stop)
+    # Admission: "pending" until its turn, then "admitted", "refused" or "queued".
+    admission: str = "pending"
+    admission_reason: str | None = None
     extra: dict[str, Any] = field(default_factory=dict)
 
     @property
@@ -80,8 +88,10 @@ class Supervisor:
         relay_url: str,
         cert_hash_hex: str | None = None,
         token_for: TokenMinter = no_token,
+        admission: Admission | None = None,
     ) -> None:
         self.sessions = sessions
+        self.admission = admission if admission is not None else Admission("admit")
         self.relay_url = relay_url
         self.cert_hash_hex = cert_hash_hex
         self.token_for = token_for
@@ -91,8 +101,56 @@ class Supervisor:
     # -- lifecycle ------------------------------------------------------------------------
 
     def start_all(self) -> None:
+        """Start the sessions admission lets start now (all of them under ``admit``);
+        check() starts the others when their turn comes."""
+        self._admit(time.monotonic())
+
+    def _admit(self, now: float) -> None:
         for s in self.sessions:
-            self._start(s)
+            if s.admission not in ("pending", "queued"):
+                continue
+            verdict = self.admission.decide(self._admission_rows(now), now)
+            if verdict.action == "wait":
+                return  # the next one waits its turn: sessions start in order
+            if verdict.action == "start":
+                if s.admission == "queued" and not self.admission.queue_may_start(now):
+                    return
+                s.admission, s.admission_reason = "admitted", None
+                self._start(s)
+                continue  # the next one's verdict sees this one (settling, if auto)
+            if s.admission != verdict.action:
+                log.warning(
+                    "session %d (%s) %s: %s",
+                    s.index,
+                    s.broadcast,
+                    "refused" if verdict.action == "refuse" else "queued",
+                    verdict.reason,
+                )
+            s.admission = "refused" if verdict.action == "refuse" else "queued"
+            s.admission_reason = verdict.reason
+            if verdict.action == "queue":
+                return  # the queue keeps its order
+
+    def _admission_rows(self, now: float) -> list[dict[str, Any]]:
+        rows = []
+        for s in self.sessions:
+            if s.admission != "admitted" or s.proc is None:
+                continue
+            status = s.status()
+            state = self.state_of(s, status)
+            rows.append(
+                {
+                    "broadcast": s.broadcast,
+                    "state": state,
+                    # Known from its config before its first status report.
+                    "quality": status.get("quality", s.stream.quality),
+                    "quality_at_floor": status.get("quality_at_floor"),
+                    "fps": status.get("fps", 0.0),
+                    "target_fps": s.config.fps,
+                    "up_for_s": now - s.started_at if state == "up" else 0.0,
+                }
+            )
+        return rows
 
     def _start(self, s: ServedSession) -> None:
         self._generation += 1
@@ -155,6 +213,7 @@ class Supervisor:
                 s.backoff_s = min(BACKOFF_MAX_S, s.backoff_s * 2)
             elif s.proc is None and s.next_start_at is not None and now >= s.next_start_at:
                 self._start(s)
+        self._admit(now)
 
     def relay_restarted(self) -> None:
         """Tell every session to reconnect at once (SIGUSR1, see session_process.py)."""
@@ -204,6 +263,10 @@ class Supervisor:
         if s.proc is None:
             if s.ended:
                 return "ended"
+            if s.admission == "pending":
+                return "waiting"
+            if s.admission in ("refused", "queued"):
+                return s.admission
             return "restarting" if s.next_start_at is not None else "stopped"
         state = str(status.get("state", "starting"))
         if state == "up" and time.time() - float(status.get("updated", 0)) > STATUS_STALE_S:
@@ -240,7 +303,10 @@ class Supervisor:
                     # the speed-against-error table expects of it.
                     "quality": status.get("quality"),
                     "quality_reason": status.get("quality_reason"),
+                    "quality_at_floor": status.get("quality_at_floor"),
                     "expected_psnr_db": status.get("expected_psnr_db"),
+                    # Why it was not started (refused or queued), else None.
+                    "admission_reason": s.admission_reason,
                     "target_fps": s.config.fps,
                     "metrics_port": status.get("metrics_port", 0),
                 }
@@ -248,4 +314,5 @@ class Supervisor:
         return out
 
     def all_up(self) -> bool:
-        return all(row["state"] == "up" for row in self.snapshot())
+        """Every session admission let start is up, and none waits for its turn."""
+        return all(row["state"] in ("up", "refused", "queued") for row in self.snapshot())

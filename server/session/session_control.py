@@ -123,6 +123,12 @@ class StatusRecord(BaseModel):
     quality_reason: str | None = Field(
         default=None, description="why adaptive quality chose the current setting"
     )
+    quality_at_floor: bool | None = Field(
+        default=None,
+        description="adaptive quality runs the cheapest setting it may and the frame rate "
+        "still misses the target: the host cannot carry more (upcast serve admits no "
+        "further session while one says so)",
+    )
     expected_psnr_db: float | None = Field(
         default=None,
         description="PSNR the current setting is expected to give against the game's "

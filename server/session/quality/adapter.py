@@ -267,6 +267,7 @@ class SessionQuality:
             return
         st = self.controller.state
         self._state["quality_reason"] = st.reason if self.enabled else "fixed"
+        self._state["quality_at_floor"] = bool(self.enabled and st.at_floor)
         if math.isfinite(st.expected_psnr_db):
             self._state["expected_psnr_db"] = round(st.expected_psnr_db, 2)
         if st.headroom_cores is not None:

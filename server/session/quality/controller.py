@@ -258,6 +258,10 @@ class QualityController:
             self._last_miss_at = m.now
         else:
             self._misses = 0
+            if self._holding(m):
+                # At the cheapest but holding now (the hog left): the host can carry it.
+                self.state.at_floor = False
+                self._said_floor = False
         if miss is not None and self._misses >= DOWN_CHECKS:
             return self._down(m, miss, p50)
         if miss is None and self._holding(m) and self._quiet_for(m.now) >= UP_HOLD_S:
