@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from server.ops.cpu_shares import shares_for
 from server.serve.config import ConfigFileError, load_overrides, session_configs
 from server.serve.control_client import request_control
 from server.session.session_control import SessionControl
@@ -152,6 +153,15 @@ def test_four_sessions_publish_and_are_listed(four: Served) -> None:
     assert status == 200 and body.count(b"upcast_serve_session_up{") == 4
     assert four.get("/healthz")[0] == 200
     assert four.get("/nope")[0] == 404
+    # Each session in a cgroup of its own, weighted by its target (fps x display pixels),
+    # where this host lets cgroups be written; else /sessions says why not.
+    cpu = four.answer()["cpu_shares"]
+    if cpu["enforced"]:
+        again = four.sessions()
+        assert all(r["cpu_shares"] == shares_for(15.0, 320 * 180) for r in again), again
+        assert all((r["cpu_seconds"] or 0) > 0 for r in again), again
+    else:
+        assert cpu["reason"] and all(r["cpu_shares"] is None for r in rows)
     # Every process of a session has its own metrics: the session, then its game and worker.
     for row in rows:
         port = int(row["metrics_port"])

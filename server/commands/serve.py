@@ -76,6 +76,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "rate even at its cheapest setting (adaptive quality's floor); under both, sessions "
         "start one after the other as each settles. admit: start every session at once",
     )
+    parser.add_argument(
+        "--cpu-shares",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="give each session a cgroup (v1 cpu) weighted by its target's cost (fps x "
+        "display pixels), so under contention none takes more than its part; where "
+        "cgroups cannot be written the sessions run without (said in /sessions)",
+    )
     parser.add_argument("--duration", type=float, default=None, help="stop after SECONDS")
     parser.add_argument(
         "--frame-tap-port",
@@ -192,6 +200,7 @@ async def _main(
 ) -> int:
     """``key``: the relay's key file and key (tokens are minted with it), None for an
     open external relay."""
+    from server.ops.cpu_shares import CpuShares, supervisor_group_name
     from server.relay.process import RelayProcess
     from server.serve.admission import Admission
     from server.serve.http_api import ServeHttp
@@ -222,7 +231,11 @@ async def _main(
     publisher = no_token if key is None else publisher_minter(key[1])
     player = no_token if key is None else player_minter(key[1])
     supervisor = Supervisor(
-        sessions, relay_url=relay_url, token_for=publisher, admission=Admission(args.admission)
+        sessions,
+        relay_url=relay_url,
+        token_for=publisher,
+        admission=Admission(args.admission),
+        cpu=CpuShares(supervisor_group_name()) if args.cpu_shares else None,
     )
     http = ServeHttp(supervisor, relay)
     code = 0

@@ -36,6 +36,7 @@ from server.ops.process import pid_alive
 
 log = logging.getLogger("upcast.reaper")
 
+LEFTOVER_S = 2.0  # how long paths that cannot go yet are retried after the processes end
 GRACE_S = 1.0  # SIGTERM, then SIGKILL: within the 2 s that anything may outlive its owner
 POLL_S = 0.02
 
@@ -137,8 +138,15 @@ def reap(watch: Watchlist, grace_s: float = GRACE_S) -> tuple[int, int]:
     for w in living:
         log.warning("reaper: pid %d outlived SIGTERM by %.1f s: SIGKILL", w.pid, grace_s)
         _signal(w, signal.SIGKILL)
-    for p in watch.paths:  # again: a process that ended just now may have left one
-        _remove(p)
+    # Again: a process that ended just now may have left one, and a cgroup can only go
+    # once the last process in it (a group member that outlived its leader) has exited.
+    deadline = time.monotonic() + LEFTOVER_S
+    while True:
+        for p in watch.paths:
+            _remove(p)
+        if not any(os.path.lexists(p) for p in watch.paths) or time.monotonic() >= deadline:
+            break
+        time.sleep(POLL_S)
     return ended, removed
 
 

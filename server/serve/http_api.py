@@ -83,7 +83,16 @@ class ServeHttp:
         """(status, content type, body) for a GET of ``path``."""
         path = path.split("?", 1)[0]
         if path == "/sessions":
-            answer = {"relay": self._relay(), "sessions": self.supervisor.snapshot()}
+            cpu = self.supervisor.cpu
+            answer = {
+                "relay": self._relay(),
+                # Whether each session's CPU share is enforced (cgroups), and why not.
+                "cpu_shares": {
+                    "enforced": cpu is not None and cpu.available,
+                    "reason": "off (--no-cpu-shares)" if cpu is None else cpu.reason,
+                },
+                "sessions": self.supervisor.snapshot(),
+            }
             body = json.dumps(answer, indent=1).encode()
             return 200, "application/json", body
         if path == "/metrics":

@@ -28,7 +28,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from server.frames.frame import Size
 from server.ops import orphan_guard
+from server.ops.cpu_shares import CpuShares, shares_for
 from server.serve.admission import Admission
 from server.serve.session_process import SOURCE_ENDED_CODE
 from server.serve.spec import SessionSpec
@@ -89,9 +91,15 @@ class Supervisor:
         cert_hash_hex: str | None = None,
         token_for: TokenMinter = no_token,
         admission: Admission | None = None,
+        cpu: CpuShares | None = None,
     ) -> None:
+        """``cpu``: the sessions' CPU shares (cgroups); None: not enforced."""
         self.sessions = sessions
         self.admission = admission if admission is not None else Admission("admit")
+        self.cpu = cpu
+        if cpu is not None:
+            for path in cpu.paths:  # removed by the reaper should we die (SIGKILL)
+                orphan_guard.watch_path(path)
         self.relay_url = relay_url
         self.cert_hash_hex = cert_hash_hex
         self.token_for = token_for
@@ -180,6 +188,12 @@ class Supervisor:
             start_new_session=True,
         )
         orphan_guard.watch_process(s.proc.pid, group=True)
+        if self.cpu is not None:
+            # Placed before it can start its game and worker (it imports for a while
+            # first): they inherit the group.
+            display = Size.parse(s.config.display_size)
+            shares = shares_for(s.config.fps, display.width * display.height)
+            self.cpu.place(_cpu_group(s), s.proc.pid, shares)
         s.started_at = time.monotonic()
         s.next_start_at = None
         log.info("session %d (%s): pid %d", s.index, s.broadcast, s.proc.pid)
@@ -252,6 +266,8 @@ class Supervisor:
                     s.proc.wait(5)
             s.proc = None
             s.next_start_at = None
+        if self.cpu is not None:
+            self.cpu.close()
         for path in self._dir.iterdir():
             path.unlink(missing_ok=True)
         with contextlib.suppress(OSError):
@@ -307,6 +323,12 @@ class Supervisor:
                     "expected_psnr_db": status.get("expected_psnr_db"),
                     # Why it was not started (refused or queued), else None.
                     "admission_reason": s.admission_reason,
+                    # Its cgroup's CPU weight and the CPU seconds it used (None: not
+                    # enforced here, see cpu_shares_reason in the relay row).
+                    "cpu_shares": None if self.cpu is None else self.cpu.shares(_cpu_group(s)),
+                    "cpu_seconds": _rounded(
+                        None if self.cpu is None else self.cpu.cpu_seconds(_cpu_group(s))
+                    ),
                     "target_fps": s.config.fps,
                     "metrics_port": status.get("metrics_port", 0),
                 }
@@ -316,3 +338,11 @@ class Supervisor:
     def all_up(self) -> bool:
         """Every session admission let start is up, and none waits for its turn."""
         return all(row["state"] in ("up", "refused", "queued") for row in self.snapshot())
+
+
+def _cpu_group(s: ServedSession) -> str:
+    return f"session-{s.index}"
+
+
+def _rounded(value: float | None) -> float | None:
+    return None if value is None else round(value, 2)
