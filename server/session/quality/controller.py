@@ -12,7 +12,10 @@ In the manner of libwebrtc's CPU adaptation and a game engine's dynamic resoluti
   its one-period budget) switch at once to the best-looking setting predicted to
   fit: every stage's median within ``DOWN_MARGIN`` of its budget and the whole
   session's CPU within what the frame rate shows it gets (``fps / target`` of what
-  it needs now, times ``DOWN_MARGIN``). When none fits, the cheapest.
+  it needs now, times ``DOWN_MARGIN``). When none fits, the cheapest, if it is
+  predicted to take under ``FLOOR_GAIN`` of the CPU the current one takes (else the
+  session is at its floor). A step down never switches to a method the table says is
+  slower than the running one, nor encodes a larger picture.
 - **Up carefully.** After ``UP_HOLD_S`` without a miss, one small step (the render
   scale by at most one ladder step, or straight back to the scale that held before the
   last step down, and/or another method or frame generation) to a
@@ -69,6 +72,7 @@ UP_HOLD_S = 4.0
 UP_MIN_GAIN_DB = 0.2
 RESET_COST_DB = 0.15
 ENCODE_SWITCH_COST_DB = 0.3
+FLOOR_GAIN = 0.85  # "nothing fits": the cheapest, only if below this share of the CPU now
 HOST_RESERVE = 0.1  # of the host's cores, never planned for
 PROBATION_S = 10.0
 BLOCK_S = 20.0
@@ -403,6 +407,19 @@ class QualityController:
         block = self._blocked.get(setting)
         return block is not None and now < block.until
 
+    def _costlier_method(self, cand: Setting, current: Setting) -> bool:
+        """A step down never moves to a method the table says is slower than the one
+        running, at the candidate's scale: its cost is a guess (a method's slowdown on a
+        busy host is its own: temporal's torch threads suffer more than a resampler),
+        and a guess is no way out of a miss."""
+        if cand.method == current.method:
+            return False
+        scale = cand.scale
+        return (
+            self.model.table_upscale_ms(cand.method, scale)[0]
+            > self.model.table_upscale_ms(current.method, scale)[0] * 1.001
+        )
+
     def _switch_cost(self, a: Setting, b: Setting) -> float:
         """dB a switch from ``a`` to ``b`` must gain beyond the picture it buys."""
         cost = RESET_COST_DB if self._resets_history(a, b) else 0.0
@@ -439,9 +456,15 @@ class QualityController:
         fps = m.fps if math.isfinite(m.fps) and m.fps > 0 else self._judged_fps()
         share = min(1.0, fps / self._judged_fps())
         cpu_allowed = now_times.cpu_cores(self.goal.target_fps) * share * DOWN_MARGIN
+        here_cpu = now_times.cpu_cores(self.goal.target_fps)
         fitting: list[tuple[float, Setting, StageTimes]] = []
         cheapest: tuple[float, Setting, StageTimes] | None = None
         for cand in self._candidates():
+            if cand != current and (
+                self._costlier_method(cand, current)
+                or cand.encode_scale < current.encode_scale - 1e-6
+            ):
+                continue  # a step down encodes no larger and runs no slower a method
             times = self.model.predict(cand)
             cpu = times.cpu_cores(self.goal.target_fps)
             if cheapest is None or cpu < cheapest[0]:
@@ -459,7 +482,15 @@ class QualityController:
         if keep or fitting:
             _, best, _ = max(keep or fitting, key=lambda x: (x[0], -x[2].cpu_cores(1.0)))
             return self._switch(m, best, "down", miss)
-        if cheapest is None or cheapest[1] == current or self.goal.preference == "resolution":
+        # The cheapest only when it is clearly cheaper: settings within a few percent of
+        # each other are all "the floor", and hopping between them costs frames.
+        near = cheapest is None or cheapest[0] > here_cpu * FLOOR_GAIN
+        if (
+            near
+            or cheapest is None
+            or cheapest[1] == current
+            or self.goal.preference == "resolution"
+        ):
             self.state.at_floor = True
             if not self._said_floor:
                 self._said_floor = True
