@@ -193,11 +193,16 @@ def test_encoded_size_changes_mid_stream_at_an_idr_with_a_new_init_segment() -> 
     assert [(f.width, f.height) for f in small] == [(W // 2, H // 2)] * 6
     reference = textured(9).reshape(H // 2, 2, W // 2, 2, 3).mean(axis=(1, 3))
     assert psnr(reference, small[-1].to_ndarray(format="rgb24")) > 28.0
+    # A viewer of the new track asks for a keyframe right away: served by the next frame,
+    # not after the cooldown (the switch's own IDR went out before anyone subscribed).
+    enc.request_keyframe()
+    served = enc.encode(textured(10), 10, 10 * FRAME_US + 1000)
+    assert served.keyframe and enc.forced_keyframes == 1
     # Asking for the size encoded now is no change; back to full size is generation 2.
     enc.set_encoded_size(W // 2, H // 2)
-    assert enc.encode(textured(10), 10, 10 * FRAME_US).new_config is None
+    assert enc.encode(textured(10), 10, 11 * FRAME_US).new_config is None
     enc.set_encoded_size(W, H)
-    back = enc.encode(textured(11), 11, 11 * FRAME_US)
+    back = enc.encode(textured(11), 11, 12 * FRAME_US)
     assert back.keyframe and back.new_config is not None
     assert (back.new_config.generation, back.new_config.width) == (2, W)
     assert enc.size_changes == 2

@@ -341,8 +341,13 @@ class VideoEncoder:
             self._last_keyframe_pts_us = pts_us
         if forced:
             self.forced_keyframes += 1
-        if new_config is not None and not keyframe:
-            raise RuntimeError("x264 reopened at a new size but its first frame is no IDR")
+        if new_config is not None:
+            if not keyframe:
+                raise RuntimeError("x264 reopened at a new size but its first frame is no IDR")
+            # Nobody subscribes to the new track before its catalog went out, so this IDR
+            # reaches no viewer: the first request for the new track is served at once,
+            # not after the cooldown this IDR would start (measured: 250-300 ms freezes).
+            self._last_keyframe_pts_us = None
 
         self._sequence += 1
         floor = self._min_fragment_bytes
