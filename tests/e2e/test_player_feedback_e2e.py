@@ -292,7 +292,6 @@ def test_decoder_error_rebuilds_the_decoder_and_asks_for_a_keyframe(
     print("decoder error:", json.dumps(summary))
     assert any(e.startswith("decoder:") for e in end["errors"]), summary
     assert summary["reason"] == "decoder error" and summary["requests"] >= 1, summary
-    assert summary["reason"] == FAULT_REASON, summary
     assert summary["recovery_ms"] < 1000, summary
 
 
