@@ -252,8 +252,8 @@ def test_a_failing_encoder_turns_audio_off_and_nothing_else() -> None:
 
 
 def test_audio_track_groups_and_timing_records() -> None:
-    h = Harness()
-    h.broadcast.tracks = TRACKS  # a broadcast with sound (Harness makes a silent one)
+    h = Harness(audio=True)  # a broadcast with sound
+    assert h.broadcast.tracks == TRACKS
     audio = h.pipe.server.subscribe("game", "audio")
     timing = h.pipe.server.subscribe("game", "timing")
     h.sync()

@@ -15,7 +15,7 @@ CATALOG = b'{"video":{"renditions":{}}}'
 
 
 class Harness:
-    def __init__(self) -> None:
+    def __init__(self, audio: bool = False) -> None:
         self.pipe = Pipe()
         self.inputs: list[tuple[str, bytes]] = []
         self.keyframe_requests = 0
@@ -26,6 +26,7 @@ class Harness:
             on_input=lambda path, payload: self.inputs.append((path, payload)),
             on_keyframe_wanted=self._want_keyframe,
             on_input_ended=self.ended.append,
+            audio=audio,
         )
         self.broadcast.attach(self.pipe.client)
         self.relay_events: list[ev.Event] = []
