@@ -117,6 +117,9 @@ class Supervisor:
         for s in self.sessions:
             if s.admission not in ("pending", "queued"):
                 continue
+            if s.proc is not None or s.ended or s.next_start_at is not None:
+                s.admission = "admitted"  # started already (a restart is no new admission)
+                continue
             verdict = self.admission.decide(self._admission_rows(now), now)
             if verdict.action == "wait":
                 return  # the next one waits its turn: sessions start in order
@@ -196,6 +199,7 @@ class Supervisor:
             self.cpu.place(_cpu_group(s), s.proc.pid, shares)
         s.started_at = time.monotonic()
         s.next_start_at = None
+        s.admission, s.admission_reason = "admitted", None
         log.info("session %d (%s): pid %d", s.index, s.broadcast, s.proc.pid)
 
     def check(self) -> None:

@@ -48,7 +48,7 @@ from server.session.audio_capture import CapturedAudio
 from server.stack.local import SessionConfig
 from tests.e2e.conftest import DISPLAY, FPS, RENDER, needs, open_player, stats
 
-pytestmark = [*needs("index.html"), pytest.mark.timeout(180)]
+pytestmark = [*needs("index.html"), pytest.mark.timeout(300)]  # up to three measurements
 
 TONE_HZ = 880.0
 
@@ -57,6 +57,7 @@ SAMPLE_RATE = 48_000  # the page's AudioContext (the offset is in its frames)
 # A jump of the playback offset beyond the drift check's tolerance: a latency reading
 # across one measures the jump, not drift.
 MAX_JUMP_MS = 20.0
+MEASUREMENTS = 3  # at most, each about 17 s
 # Spectra 200 ms apart: the loudest bin's frequency, the tone's power against
 # everything more than 20 bins (117 Hz) away from it, in dB, and the page's playback
 # offset (frames) right after: a change of it is a jump of the sound (see above).
@@ -252,13 +253,21 @@ def test_lost_packets_make_no_click_storm_and_no_drift(
             timeout=20_000,
         )
         page.wait_for_timeout(3500)  # the start-up's latencies leave the 6 s window
-        m = _measure(page, lossy)
-        if len(m.steady_lossy) < READS // 2 or m.largest_jump_ms > MAX_JUMP_MS:
-            print(
-                f"audio loss: {READS - len(m.steady_lossy)} spectra across a jump, the"
-                f" largest {m.largest_jump_ms:.0f} ms: measuring again"
-            )
+        # Up to three measurements: the first without a jump over MAX_JUMP_MS, else the
+        # one whose largest jump was smallest (in a CI run both of two had 38-85 ms jumps
+        # and the offset moved 400 ms between the readings: nothing left to judge drift by).
+        tries: list[LossMeasurement] = []
+        for attempt in range(MEASUREMENTS):
             m = _measure(page, lossy)
+            tries.append(m)
+            if len(m.steady_lossy) >= READS // 2 and m.largest_jump_ms <= MAX_JUMP_MS:
+                break
+            if attempt < MEASUREMENTS - 1:
+                print(
+                    f"audio loss: {READS - len(m.steady_lossy)} spectra across a jump, the"
+                    f" largest {m.largest_jump_ms:.0f} ms: measuring again"
+                )
+        m = min(tries, key=lambda t: (len(t.steady_lossy) < READS // 2, t.largest_jump_ms))
     finally:
         page.close()
     steady = m.steady_lossy
