@@ -147,3 +147,20 @@ def test_frames_between_counts_the_tapped_frames_and_the_times_kept_are_bounded(
         thumbs(frame_id, frame)
     assert len(thumbs.times) == 5  # a long session keeps the last frames' times only
     assert thumbs.frames_between(t0, time.monotonic() + 1e-6) == 5
+
+
+def test_a_smaller_encoded_picture_is_compared_at_its_own_size() -> None:
+    """The stream encoded below the display size: the page's thumbnail is smaller than
+    the tap's; the comparison is made at the smaller size, either way round."""
+    import cv2
+
+    from server.bench.snapshots import psnr
+
+    y, x = np.mgrid[0:720, 0:1280].astype(np.float32)
+    frame = np.stack([128 + 60 * np.sin(x / 40), 128 + 60 * np.cos(y / 30), 0 * x + 90], -1)
+    frame = frame.astype(np.uint8)
+    shown = cv2.resize(frame, (426, 240), interpolation=cv2.INTER_AREA)
+    same = psnr(thumbnail(shown), thumbnail(frame))
+    assert same == psnr(thumbnail(frame), thumbnail(shown)) and same > 35.0
+    other = np.roll(frame, 100, axis=1)
+    assert psnr(thumbnail(shown), thumbnail(other)) < same - 10.0

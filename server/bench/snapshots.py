@@ -59,6 +59,18 @@ def page_thumbnail(result: dict[str, Any]) -> Thumb:
 
 
 def psnr(a: Thumb, b: Thumb) -> float:
+    """PSNR of two thumbnails; of different sizes (the stream encoded below the display
+    size: the page decodes the smaller picture), at the smaller one, the larger
+    area-averaged down to it: what the smaller picture can show of the larger."""
+    if a.shape != b.shape:
+        import cv2
+
+        small, large = (a, b) if a.shape[0] * a.shape[1] <= b.shape[0] * b.shape[1] else (b, a)
+        size = (small.shape[1], small.shape[0])
+        shrunk = cv2.resize(
+            np.ascontiguousarray(large, dtype=np.float32), size, interpolation=cv2.INTER_AREA
+        )
+        a, b = small, np.asarray(shrunk, dtype=np.float32)
     mse = float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2))
     return 99.0 if mse == 0 else 10.0 * float(np.log10(255.0**2 / mse))
 
