@@ -126,8 +126,7 @@ class Supervisor:
             if verdict.action == "start":
                 if s.admission == "queued" and not self.admission.queue_may_start(now):
                     return
-                s.admission, s.admission_reason = "admitted", None
-                self._start(s)
+                self._start(s)  # marks it admitted
                 continue  # the next one's verdict sees this one (settling, if auto)
             if s.admission != verdict.action:
                 log.warning(
