@@ -126,7 +126,8 @@ class Supervisor:
             if verdict.action == "start":
                 if s.admission == "queued" and not self.admission.queue_may_start(now):
                     return
-                self._start(s)  # marks it admitted
+                s.admission, s.admission_reason = "admitted", None
+                self._start(s)
                 continue  # the next one's verdict sees this one (settling, if auto)
             if s.admission != verdict.action:
                 log.warning(
