@@ -34,6 +34,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "control": ("control", "change a session's upscaler or scale over MoQ; print the result"),
     "loadtest": ("loadtest", "many moq-lite viewers against a relay: fps, loss, latency, CPU"),
     "token": ("token", "make the relay's key file (generate) and tokens signed with it (sign)"),
+    "calibrate": (
+        "calibrate",
+        "time every upscaler on this machine for adaptive quality; cache it",
+    ),
     "train": ("train", "train a neural upscaler (unet, unetpp) on the game's own frames"),
     "netem": ("netem", "shape UDP between viewers and the relay: rate, delay, loss (loopback)"),
 }

@@ -32,6 +32,7 @@ from server.frames.frame import FrameMeta, Size
 from server.frames.monitor import FrameRateMonitor
 from server.ops.host_load import HostLoad
 from server.session.input_router import InputRouter
+from server.session.quality.calibrate import load_machine_figures
 from server.session.quality.controller import (
     Decision,
     Measurement,
@@ -39,7 +40,7 @@ from server.session.quality.controller import (
     QualityGoal,
     SourceLimits,
 )
-from server.session.quality.figures import FiguresError, load_figures
+from server.session.quality.figures import FiguresError
 from server.session.quality.model import QualityModel, Setting
 from server.session.quality.scene import SceneTracker
 from server.session.session_control import ControlResult
@@ -329,9 +330,11 @@ def _controller_for(
     if settings.upscaler is None or settings.scale is None:
         return None, "the starting upscaler and render scale are not known to this session"
     try:
-        figures = load_figures()
+        machine = load_machine_figures()
     except FiguresError as exc:
         return None, str(exc)
+    figures = machine.figures
+    log.info("quality: figures from %s", machine.source)
     if settings.upscaler not in figures.methods:
         return None, (
             f"no speed-against-error figures for {settings.upscaler!r} (auto chooses among "
