@@ -9,6 +9,14 @@ from typing import Any
 import pytest
 
 from server.ops.browser_paths import CHROMIUM, CHROMIUM_ARGS
+from server.session.quality.calibrate import CACHE_ENV
+
+# Sessions started by the tests (and the processes they start) read no calibration a
+# developer made on this machine (`upcast calibrate`): every run starts from the shipped
+# table, as on a fresh CI machine. A test that wants one writes it under its own dir.
+os.environ[CACHE_ENV] = os.path.join(
+    os.environ.get("TMPDIR", "/tmp"), f"upcast-test-cache-{os.getpid()}"
+)
 
 
 @pytest.fixture
