@@ -68,3 +68,24 @@ def test_under_contention_the_heavier_session_gets_more_cpu() -> None:
     assert used["heavy"] > 2.0 * used["light"], used
     # Every group made here is gone once its processes are.
     assert not (CGROUP_ROOT / "cpu" / f"upcast-test-{os.getpid()}").exists()
+
+
+def test_a_placed_sessions_weight_can_be_moved(tmp_path: Path) -> None:
+    """The share planner's writes: a new weight reads back; a session never placed, or a
+    host without cgroups, answers False."""
+    assert CpuShares("x", root=tmp_path / "none").set_shares("session-1", 2048) is False
+    shares = CpuShares(f"upcast-test-move-{os.getpid()}")
+    if not shares.available:
+        assert shares.reason
+        return
+    proc = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+    try:
+        assert shares.place("session-1", proc.pid, BASE_SHARES)
+        assert shares.set_shares("session-1", 3 * BASE_SHARES)
+        assert shares.shares("session-1") == 3 * BASE_SHARES
+        assert shares.set_shares("never-placed", BASE_SHARES) is False
+    finally:
+        proc.kill()
+        proc.wait()
+        time.sleep(0.2)
+        shares.close()

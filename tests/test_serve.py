@@ -158,7 +158,10 @@ def test_four_sessions_publish_and_are_listed(four: Served) -> None:
     cpu = four.answer()["cpu_shares"]
     if cpu["enforced"]:
         again = four.sessions()
-        assert all(r["cpu_shares"] == shares_for(15.0, 320 * 180) for r in again), again
+        # At its base weight, or moved by the share planner, which says why.
+        base = shares_for(15.0, 320 * 180)
+        assert all(r["cpu_shares"] >= base for r in again), again
+        assert all(r["cpu_shares"] == base or r["cpu_shares_reason"] for r in again), again
         assert all((r["cpu_seconds"] or 0) > 0 for r in again), again
     else:
         assert cpu["reason"] and all(r["cpu_shares"] is None for r in rows)

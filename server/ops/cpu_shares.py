@@ -85,6 +85,17 @@ class CpuShares:
             return False
         return True
 
+    def set_shares(self, session: str, shares: int) -> bool:
+        """A placed session's new weight; False (and a log line) when it could not be set."""
+        if not self.available:
+            return False
+        try:
+            (self._cpu / session / "cpu.shares").write_text(str(shares))
+        except OSError as exc:
+            log.warning("CPU shares: could not set %s to %d: %s", session, shares, exc)
+            return False
+        return True
+
     def shares(self, session: str) -> int | None:
         with contextlib.suppress(OSError, ValueError):
             return int((self._cpu / session / "cpu.shares").read_text())

@@ -18,6 +18,7 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import math
 import os
 import signal
 import subprocess
@@ -31,6 +32,7 @@ from typing import Any
 from server.frames.frame import Size
 from server.ops import orphan_guard
 from server.ops.cpu_shares import CpuShares, shares_for
+from server.serve import share_planner
 from server.serve.admission import Admission
 from server.serve.session_process import SOURCE_ENDED_CODE
 from server.serve.spec import SessionSpec
@@ -67,6 +69,9 @@ class ServedSession:
     # Admission: "pending" until its turn, then "admitted", "refused" or "queued".
     admission: str = "pending"
     admission_reason: str | None = None
+    # Its CPU weight's factor over its base (share_planner.py) and why it was last moved.
+    share_boost: float = 1.0
+    share_reason: str | None = None
     extra: dict[str, Any] = field(default_factory=dict)
 
     @property
@@ -97,6 +102,7 @@ class Supervisor:
         self.sessions = sessions
         self.admission = admission if admission is not None else Admission("admit")
         self.cpu = cpu
+        self._shares_at = -math.inf  # when share_planner last ran
         if cpu is not None:
             for path in cpu.paths:  # removed by the reaper should we die (SIGKILL)
                 orphan_guard.watch_path(path)
@@ -194,9 +200,9 @@ class Supervisor:
         if self.cpu is not None:
             # Placed before it can start its game and worker (it imports for a while
             # first): they inherit the group.
-            display = Size.parse(s.config.display_size)
-            shares = shares_for(s.config.fps, display.width * display.height)
-            self.cpu.place(_cpu_group(s), s.proc.pid, shares)
+            # A fresh process starts from its base weight (a boost was its last life's).
+            s.share_boost, s.share_reason = 1.0, None
+            self.cpu.place(_cpu_group(s), s.proc.pid, _base_shares(s))
         s.started_at = time.monotonic()
         s.next_start_at = None
         s.admission, s.admission_reason = "admitted", None
@@ -232,6 +238,47 @@ class Supervisor:
             elif s.proc is None and s.next_start_at is not None and now >= s.next_start_at:
                 self._start(s)
         self._admit(now)
+        self._move_shares(now)
+
+    def _move_shares(self, now: float) -> None:
+        """Every PERIOD_S, the weights share_planner gives the running sessions."""
+        if (
+            self.cpu is None
+            or not self.cpu.available
+            or now - self._shares_at < share_planner.PERIOD_S
+        ):
+            return
+        self._shares_at = now
+        by_group: dict[str, ServedSession] = {}
+        rows: list[share_planner.ShareInput] = []
+        for s in self.sessions:
+            if s.proc is None or s.proc.poll() is not None:
+                continue
+            status = s.status()
+            fps = status.get("fps")
+            group = _cpu_group(s)
+            by_group[group] = s
+            rows.append(
+                share_planner.ShareInput(
+                    group=group,
+                    label=f"session {s.index} ({s.broadcast})",
+                    base=_base_shares(s),
+                    boost=s.share_boost,
+                    up=self.state_of(s, status) == "up",
+                    fps=float(fps) if isinstance(fps, int | float) else None,
+                    target_fps=s.config.fps,
+                    can_trade=status.get("quality") == "auto"
+                    and status.get("quality_at_floor") is not True,
+                )
+            )
+        for change in share_planner.plan(rows):
+            s = by_group[change.group]
+            if self.cpu.set_shares(change.group, change.shares):
+                log.info(
+                    "cpu shares: %s -> %d (x%.2f of its base)",
+                    change.reason, change.shares, change.boost,
+                )  # fmt: skip
+                s.share_boost, s.share_reason = change.boost, change.reason
 
     def relay_restarted(self) -> None:
         """Tell every session to reconnect at once (SIGUSR1, see session_process.py)."""
@@ -330,6 +377,8 @@ class Supervisor:
                     # Its cgroup's CPU weight and the CPU seconds it used (None: not
                     # enforced here, see cpu_shares_reason in the relay row).
                     "cpu_shares": None if self.cpu is None else self.cpu.shares(_cpu_group(s)),
+                    # Why its weight was last moved from its base (None: never was).
+                    "cpu_shares_reason": s.share_reason,
                     "cpu_seconds": _rounded(
                         None if self.cpu is None else self.cpu.cpu_seconds(_cpu_group(s))
                     ),
@@ -342,6 +391,11 @@ class Supervisor:
     def all_up(self) -> bool:
         """Every session admission let start is up, and none waits for its turn."""
         return all(row["state"] in ("up", "refused", "queued") for row in self.snapshot())
+
+
+def _base_shares(s: ServedSession) -> int:
+    display = Size.parse(s.config.display_size)
+    return shares_for(s.config.fps, display.width * display.height)
 
 
 def _cpu_group(s: ServedSession) -> str:
