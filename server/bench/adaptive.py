@@ -24,6 +24,7 @@ import argparse
 import asyncio
 import contextlib
 import functools
+import itertools
 import os
 import re
 import subprocess
@@ -196,6 +197,13 @@ async def _run_serve(
             if len(counts) >= 2 and counts[-1][0] > counts[0][0]:
                 rate = (counts[-1][1] - counts[0][1]) / (counts[-1][0] - counts[0][0])
                 case_row["session_published_fps"] = round(rate, 2)
+                # Between polls (about a second apart): whether a gap at the viewer is
+                # the session's (nothing published) or the delivery's.
+                case_row["per_poll_published_fps"] = [
+                    round((b1 - a1) / (b0 - a0), 1)
+                    for (a0, a1), (b0, b1) in itertools.pairwise(counts)
+                    if b0 > a0
+                ]
     finally:
         if hog is not None and hog.poll() is None:
             stop_child(hog, 1)
