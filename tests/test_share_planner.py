@@ -3,6 +3,7 @@ setting and short of its rate gets weight; it goes back once the session holds."
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import replace
 from pathlib import Path
@@ -15,6 +16,7 @@ from server.serve.share_planner import (
     CLEAR_FRACTION,
     MAX_BOOST,
     MIN_CHANGE,
+    STEADY_S,
     STEP,
     ShareInput,
     plan,
@@ -138,6 +140,8 @@ def test_the_supervisor_moves_a_stuck_sessions_weight_and_says_why(tmp_path: Pat
     host.supervisor.start_all()
     host.supervisor.check()
     assert host.started == [1, 2]
+    for s in host.sessions:  # long past their start (the stand-in start sets no time)
+        s.steady_since = -math.inf
     target = host.sessions[1].config.fps
     host.report(1, at_floor=False, fps=target)
     host.report(2, at_floor=True, fps=12.0)
@@ -156,3 +160,21 @@ def test_the_supervisor_moves_a_stuck_sessions_weight_and_says_why(tmp_path: Pat
     before = dict(cpu.written)
     host.supervisor.check()
     assert cpu.written == before
+    # Its worker restarts: back to its base until it runs steadily again.
+    host.report(2, at_floor=True, fps=0.0)
+    status = json.loads(host.sessions[1].status_path.read_text())
+    host.sessions[1].status_path.write_text(json.dumps({**status, "worker_restarts": 1}))
+    host.supervisor._shares_at = -math.inf
+    host.supervisor.check()
+    rows = host.supervisor.snapshot()
+    assert rows[1]["cpu_shares"] == base and "starting" in rows[1]["cpu_shares_reason"]
+
+
+def test_no_boost_while_a_session_or_its_worker_starts() -> None:
+    """Short of its rate because its worker restarts, not for CPU: a boost would hand its
+    start-up the others' CPU. A boost in place goes back to the base."""
+    starting = replace(ROW, can_trade=False, fps=3.0, steady_s=STEADY_S - 1)
+    assert plan([starting]) == []
+    (back,) = plan([replace(starting, boost=2.5)])
+    assert back.boost == 1.0 and back.shares == 1024 and "starting" in back.reason
+    assert plan([replace(starting, steady_s=STEADY_S)])[0].boost == STEP

@@ -14,7 +14,8 @@ The weights stay relative: the base is ``shares_for`` (the target's cost), a boo
 multiplies it by at most ``MAX_BOOST``; it grows each period the session misses, by what the
 missing rate asks (``target / fps``) but at most ``STEP``, and decays by ``DECAY`` a period
 once the session clearly holds (``CLEAR_FRACTION`` of its target) or can trade again. A
-weight moves only when it changes by ``MIN_CHANGE`` or more. Sans-IO: the supervisor feeds it the
+weight moves only when it changes by ``MIN_CHANGE`` or more, and no boost grows within
+``STEADY_S`` of the session's (or its worker's) start. Sans-IO: the supervisor feeds it the
 sessions' status every ``PERIOD_S`` and writes the weights it returns.
 """
 
@@ -31,6 +32,7 @@ DECAY = 0.8  # a held session's boost shrinks by this factor a period
 HOLD_FRACTION = 0.9  # the controller's bar: under it, a window misses the target
 CLEAR_FRACTION = 0.97  # a boost decays only above this share of the target
 MIN_CHANGE = 0.1
+STEADY_S = 30.0  # no boost this soon after a (worker) start
 
 
 @dataclass(frozen=True)
@@ -45,6 +47,10 @@ class ShareInput:
     fps: float | None  # published over the monitor's window
     target_fps: float
     can_trade: bool  # auto and not at its floor: it holds its rate with its picture
+    # Seconds since its process started or its worker last restarted: a session short of
+    # its rate while it starts is short of its worker, not of CPU, and a boost would only
+    # hand its start-up (imports, kernels) the others' CPU.
+    steady_s: float = math.inf
 
 
 @dataclass(frozen=True)
@@ -58,6 +64,8 @@ class ShareChange:
 def _short_by(row: ShareInput) -> float | None:
     """target / fps for a session short of its rate with nothing left to trade, else None."""
     if not row.up or row.can_trade or row.fps is None or not math.isfinite(row.fps):
+        return None
+    if row.steady_s < STEADY_S:
         return None
     if row.target_fps <= 0 or row.fps >= HOLD_FRACTION * row.target_fps:
         return None
@@ -85,7 +93,10 @@ def plan(rows: Iterable[ShareInput]) -> list[ShareChange]:
         if not row.up:
             continue
         short = _short_by(row)
-        if short is not None:
+        if row.steady_s < STEADY_S and row.boost > 1.0:
+            boost = 1.0
+            why = "(re)starting: back to its base weight until it runs steadily"
+        elif short is not None:
             # Grows while it misses: what the weight buys depends on the others' weights.
             boost = min(MAX_BOOST, row.boost * min(STEP, short))
             why = (

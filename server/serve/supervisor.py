@@ -72,6 +72,8 @@ class ServedSession:
     # Its CPU weight's factor over its base (share_planner.py) and why it was last moved.
     share_boost: float = 1.0
     share_reason: str | None = None
+    steady_since: float = 0.0  # its start or its worker's last restart (monotonic)
+    worker_restarts_seen: int = 0
     extra: dict[str, Any] = field(default_factory=dict)
 
     @property
@@ -202,6 +204,7 @@ class Supervisor:
             # first): they inherit the group.
             # A fresh process starts from its base weight (a boost was its last life's).
             s.share_boost, s.share_reason = 1.0, None
+            s.steady_since, s.worker_restarts_seen = time.monotonic(), 0
             self.cpu.place(_cpu_group(s), s.proc.pid, _base_shares(s))
         s.started_at = time.monotonic()
         s.next_start_at = None
@@ -256,6 +259,9 @@ class Supervisor:
                 continue
             status = s.status()
             fps = status.get("fps")
+            restarts = status.get("worker_restarts", 0)
+            if isinstance(restarts, int) and restarts != s.worker_restarts_seen:
+                s.worker_restarts_seen, s.steady_since = restarts, now
             group = _cpu_group(s)
             by_group[group] = s
             rows.append(
@@ -269,6 +275,7 @@ class Supervisor:
                     target_fps=s.config.fps,
                     can_trade=status.get("quality") == "auto"
                     and status.get("quality_at_floor") is not True,
+                    steady_s=now - s.steady_since,
                 )
             )
         for change in share_planner.plan(rows):
