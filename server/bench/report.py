@@ -13,18 +13,12 @@ from typing import Any
 
 import numpy as np
 
+from server.ops.machine import cpu_model
+
 
 def machine_info() -> dict[str, Any]:
     """CPU model, thread counts and GPU (if torch sees one), for the report header."""
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    cpu = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
+    cpu = cpu_model() or platform.processor() or platform.machine()
     info: dict[str, Any] = {
         "cpu": cpu,
         "cpu_count": os.cpu_count(),

@@ -16,6 +16,8 @@ import sys
 import time
 from pathlib import Path
 
+from server.frames.frame import Size
+from server.ops.machine import usable_cores
 from server.ops.progress import progress
 
 # A 1-minute load average above this share of the cores: other work is running.
@@ -67,12 +69,12 @@ def _size(text: str) -> tuple[int, int] | None:
     if not text:
         return None
     try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise SystemExit(f"upcast calibrate: --display-size {text!r}: expected WxH") from None
-    if w < 16 or h < 16:
+        size = Size.parse(text)
+    except ValueError as exc:
+        raise SystemExit(f"upcast calibrate: --display-size: {exc}") from None
+    if size.width < 16 or size.height < 16:
         raise SystemExit("upcast calibrate: --display-size must be at least 16x16")
-    return w, h
+    return size.width, size.height
 
 
 def run(args: argparse.Namespace) -> int:
@@ -137,9 +139,9 @@ def run(args: argparse.Namespace) -> int:
 
 def _warn_if_busy() -> None:
     """Times measured beside other work are that work's as much as ours: say so."""
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    cores = usable_cores()
     load = os.getloadavg()[0]
-    if cores and load > BUSY_LOAD_SHARE * cores:
+    if load > BUSY_LOAD_SHARE * cores:
         progress(
             f"calibrate: warning: this machine is busy (load average {load:.1f} on {cores} "
             "cores); the times measured now will be slow. Run again when it is idle."

@@ -8,8 +8,9 @@ reading covers exactly the time since the one before.
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
+
+from server.ops.machine import usable_cores
 
 PROC_STAT = Path("/proc/stat")
 
@@ -37,7 +38,7 @@ class HostLoad:
 
     def __init__(self, path: Path = PROC_STAT, cores: int | None = None) -> None:
         self.path = path
-        self.cores = float(cores if cores is not None else _usable_cores())
+        self.cores = float(cores if cores is not None else usable_cores())
         self._last = self._read()
         self._host_cpus = self._count_cpus()
 
@@ -63,11 +64,3 @@ class HostLoad:
         # /proc/stat counts every CPU of the host; a container may use fewer of them.
         busy = max(0.0, min(1.0, share)) * self._host_cpus
         return min(busy, self.cores) if self._host_cpus > self.cores else busy
-
-
-def _usable_cores() -> int:
-    """Cores this process may run on (a container's CPU set, not the host's count)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not Linux
-        return os.cpu_count() or 1

@@ -12,10 +12,10 @@ so with fewer cores the render scale drops before the frame rate does.
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 
 from server.frames.frame import Size
+from server.ops.machine import usable_cores
 
 # (fewest usable cores per session, fps, render scale of the display size); first match.
 _TIERS: tuple[tuple[int, float, float], ...] = (
@@ -30,14 +30,6 @@ class FittedDefaults:
     fps: float
     render_size: Size
     reason: str
-
-
-def usable_cores() -> int:
-    """Cores this process may run on (a container's CPU set, not the host's count)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not Linux
-        return os.cpu_count() or 1
 
 
 def _even(value: float) -> int:

@@ -50,8 +50,8 @@ ANALYSE = """async () => {
 }"""
 
 
-def _summary(page: Any) -> dict[str, Any]:
-    s = stats(page)
+def _summary(s: dict[str, Any]) -> dict[str, Any]:
+    """The page's audio stats and latency percentiles from one ``stats`` snapshot."""
     lat = s["latency"]
     keys = ("audio_capture", "audio_encode", "audio_publish", "audio_network",
             "audio_decode", "audio_play", "audio_total", "av_offset", "total")  # fmt: skip
@@ -92,13 +92,14 @@ def _measure_sync(page: Any, audio: Any) -> tuple[dict[str, Any], bool]:
     cpu0, t0 = audio.stats.encode_ns, time.monotonic()
     time.sleep(8)  # let the latency and offset windows fill
     cpu_share = (audio.stats.encode_ns - cpu0) / 1e9 / (time.monotonic() - t0)
-    summary = _summary(page)
-    offsets = np.abs(np.array(stats(page)["latency"]["av_offset"]["samples"][settled:]))
+    end = stats(page)  # one snapshot: the summary, the offsets and the starvation agree
+    summary = _summary(end)
+    offsets = np.abs(np.array(end["latency"]["av_offset"]["samples"][settled:]))
     summary["abs_av_offset"] = {
         f"p{q}": float(np.percentile(offsets, q)) if offsets.size else float("inf")
         for q in (50, 90, 95)
     }
-    starved_ms = (_starved_frames(stats(page)) - starved0) / SAMPLE_RATE * 1000
+    starved_ms = (_starved_frames(end) - starved0) / SAMPLE_RATE * 1000
     summary.update(framesBefore=before, starvedMs=starved_ms, audio_cpu_share_of_a_core=cpu_share)
     return summary, starved_ms < STARVED_MS
 

@@ -29,6 +29,7 @@ from typing import Any
 
 import numpy as np
 
+from server.ops.machine import cpu_model, usable_cores
 from server.session.quality.figures import (
     FIGURES_PATH,
     PREDICTOR,
@@ -42,16 +43,6 @@ CACHE_ENV = "UPCAST_CACHE_DIR"  # where calibrations live; else $XDG_CACHE_HOME/
 WARMUP_CALLS = 2  # first calls allocate (and a temporal method has no history yet)
 
 
-def _cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return "unknown CPU"
-
-
 def machine_description() -> str:
     """What the times depend on: the CPU, how many cores this process may use, torch
     (its version read from the package's metadata: a session need not import torch)."""
@@ -59,8 +50,7 @@ def machine_description() -> str:
         torch_version = importlib.metadata.version("torch")
     except importlib.metadata.PackageNotFoundError:
         torch_version = "none"
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    return f"{_cpu_model()}, {cores} cores, torch {torch_version}"
+    return f"{cpu_model() or 'unknown CPU'}, {usable_cores()} cores, torch {torch_version}"
 
 
 def machine_key(description: str | None = None) -> str:
