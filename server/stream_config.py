@@ -43,14 +43,16 @@ class StreamConfig(BaseModel):
     )
     quality: Literal["auto", "fixed"] = Field(
         default="auto",
-        description="auto: upscaler, render scale and frame generation follow the host's"
-        " load and the scene to hold the frame rate with the best picture; fixed: the"
-        " settings stay as started",
+        description="auto: upscaler, render scale, frame generation, encoded size and, last,"
+        " the frame rate follow the host's load and the scene to hold the frame rate with"
+        " the best picture; fixed: the settings stay as started",
     )
     quality_preference: Literal["framerate", "resolution", "balanced"] = Field(
         default="framerate",
-        description="what auto gives up first: the picture (framerate), never the starting"
-        " picture (resolution), or the rate down to 3/4 of the target first (balanced)",
+        description="what auto gives up first: the picture, the frame rate only when the"
+        " cheapest picture misses (framerate); the frame rate before the picture goes below"
+        " the start (resolution); the rate sags to 3/4 of the target and is lowered before"
+        " the encoded size (balanced)",
     )
     min_scale: float = Field(default=1.0, ge=1.0, le=4.0, description="auto's lowest render scale")
     max_scale: float = Field(default=4.0, ge=1.0, le=4.0, description="auto's highest render scale")

@@ -1,10 +1,12 @@
 """A simulated host for the quality controller: sessions whose stages cost CPU time that
 depends on their setting, sharing a number of cores (and a hog that takes some).
 
-When the sessions (and the hog) ask more CPU than the host has, every stage stretches
-by the same factor and the frame rate falls by it: the first-order behaviour of
-processes sharing cores under a fair scheduler. The true costs are the simulator's
-own, not the controller's table, so the controller has to learn them.
+A session runs at its setting's frame rate (``rate`` of the host's ``fps``) and costs
+CPU in proportion to it. When the sessions (and the hog) ask more CPU than the host
+has, every stage stretches by the same factor and the frame rate falls by it: the
+first-order behaviour of processes sharing cores under a fair scheduler. The true
+costs are the simulator's own, not the controller's table, so the controller has to
+learn them.
 """
 
 from __future__ import annotations
@@ -71,12 +73,13 @@ class SimulatedHost:
         times = [
             true_times(c.setting, self.temporal_ms, self.fg_render_share) for c in self.controllers
         ]
-        demand = sum(sum(t.values()) * self.fps / 1000.0 for t in times)
+        rates = [self.fps * c.setting.rate for c in self.controllers]
+        demand = sum(sum(t.values()) * r / 1000.0 for t, r in zip(times, rates, strict=True))
         demand += self.hog_cores(self.now)
         stretch = max(1.0, demand / self.cores)
         busy = min(self.cores, demand)
         for i, (controller, t) in enumerate(zip(self.controllers, times, strict=True)):
-            fps = self.fps / stretch
+            fps = rates[i] / stretch
             # A stage whose own median passes the frame period caps the rate too.
             slowest = max(t.values()) * stretch
             fps = min(fps, 1000.0 / slowest)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+import time
 
 import numpy as np
 
@@ -86,4 +87,39 @@ def test_jitter_follows_the_upscaler_kind(ring_name: str) -> None:
         with lease:
             jitters.append(render_frame_of(lease).meta.jitter)
     assert jitters[0] != (0.0, 0.0) and jitters[1] == (0.0, 0.0) and jitters[2] != (0.0, 0.0)
+    ring.close()
+
+
+def test_a_lower_frame_rate_keeps_the_pace_of_game_time(ring_name: str) -> None:
+    """The quality controller halves the frame rate: the loop ticks half as often and each
+    frame advances game time by the new period, so the world moves as fast as before;
+    frame ids stay consecutive (frame generation's base is the id one less)."""
+    ring = create_render_ring(ring_name, SIZE)
+    loop = GameLoop(Renderer("default", SIZE), ring, fps=30.0)
+    assert [loop.game_time(i) for i in (0, 3)] == [0.0, 0.1]
+    assert loop.step(0) and loop.step(1) and loop.step(2)
+    loop.request_frame_rate(15.0)
+    assert loop.step(3)
+    assert loop.frame_rate == 15.0
+    # Frame 3 keeps its time (it was scheduled one old period after frame 2); frame 5 is
+    # two new periods later.
+    assert loop.game_time(3) == 0.1
+    assert abs(loop.game_time(5) - (0.1 + 2 / 15)) < 1e-12
+    loop.request_frame_rate(float("nan"))  # refused with a log line, nothing changes
+    loop.request_frame_rate(-1.0)
+    assert loop.step(4) and loop.frame_rate == 15.0
+    ring.close()
+
+
+def test_the_loop_ticks_at_the_rate_it_is_asked(ring_name: str) -> None:
+    ring = create_render_ring(ring_name, SIZE)
+    loop = GameLoop(Renderer("static", SIZE), ring, fps=100.0)
+    loop.request_frame_rate(20.0)
+    start = time.monotonic()
+    stats = loop.run(threading.Event(), max_frames=6)
+    elapsed = time.monotonic() - start
+    # Six frames at 20 fps: five periods of 50 ms between them. At 100 fps it would be
+    # 50 ms in all; a loaded machine only makes it longer.
+    assert stats.frames == 6
+    assert elapsed >= 5 * 0.05 - 0.01
     ring.close()

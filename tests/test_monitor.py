@@ -88,6 +88,18 @@ def test_bad_target_is_refused() -> None:
         FrameRateMonitor("x", 0.0)
 
 
+def test_a_new_target_moves_the_default_budgets_and_keeps_given_ones() -> None:
+    mon = FrameRateMonitor("session", 30.0)
+    mon.set_target_fps(15.0)
+    assert mon.target_fps == 15.0
+    assert mon.budgets_ms["render"] == pytest.approx(1000 / 15)
+    given = FrameRateMonitor("session", 30.0, budgets_ms={"render": 5.0})
+    given.set_target_fps(15.0)
+    assert given.budgets_ms == {"render": 5.0}
+    with pytest.raises(ValueError, match="target_fps"):
+        mon.set_target_fps(float("nan"))
+
+
 def test_monitors_share_one_registry_by_component() -> None:
     registry = CollectorRegistry()
     a = FrameRateMonitor("relay/a", None, registry=registry)

@@ -7,6 +7,7 @@ from __future__ import annotations
 import asyncio
 import math
 import socket
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -113,7 +114,10 @@ def _settings(**overrides: object) -> StreamSettings:
 def _adapter(tmp_path: Path, **overrides: object) -> tuple[SessionQuality, _Game, InputRouter]:
     game = _Game(tmp_path / "game.sock")
     router = InputRouter(
-        game_input=tmp_path / "game.sock", worker_control=None, request_keyframe=lambda: None
+        game_input=tmp_path / "game.sock",
+        worker_control=None,
+        request_keyframe=lambda: None,
+        max_frame_rate=30.0,
     )
     state: dict[str, str | float | bool] = {}
     monitor = FrameRateMonitor("session", 30.0)
@@ -182,6 +186,40 @@ def test_a_persons_request_pins_and_quality_fixed_stops_switching(tmp_path: Path
         router.handle("viewer", b'{"type":"control","seq":5,"min_scale":3,"max_scale":2}')
         assert adapter.controller.goal.methods == ("easu",)
         assert adapter.controller.goal.min_scale == 1.0
+
+    asyncio.run(scenario())
+
+
+def test_a_lower_frame_rate_reaches_the_game_and_a_persons_rate_pins(tmp_path: Path) -> None:
+    async def scenario() -> None:
+        adapter, game, router = _adapter(tmp_path)
+        assert adapter.controller is not None
+        rates: list[float] = []
+        router.on_frame_rate = rates.append
+        # A rate pinned to 20 fps' fraction: the controller conforms at once.
+        adapter.controller.set_goal(QualityGoal(target_fps=30.0, methods=("bilinear",)))
+        adapter.controller.pin(rate=2 / 3)
+        adapter.controller.state.setting = replace(adapter.controller.setting, rate=1.0)
+        decision = adapter.step(1000.0)
+        assert decision is not None and decision.setting.rate == pytest.approx(2 / 3)
+        assert "at 20 fps" in decision.log_line()
+        sent = [m.frame_rate for m in game.received() if m.frame_rate is not None]
+        assert sent == [pytest.approx(20.0)] and rates == [pytest.approx(20.0)]
+        # A person asks 15 fps: pinned as half the target; above the configured rate is
+        # refused with the reason and changes nothing.
+        results: list[ControlResult] = []
+        router.on_control_result = results.append
+        router.handle("viewer", b'{"type":"control","seq":1,"frame_rate":15}')
+        assert adapter.controller.setting.rate == pytest.approx(0.5)
+        router.handle("viewer", b'{"type":"control","seq":2,"frame_rate":60}')
+        router.handle("viewer", b'{"type":"control","seq":3,"target_fps":45}')
+        assert [r.accepted for r in results] == [True, False, False]
+        assert "above the session's configured 30 fps" in (results[1].reason or "")
+        assert rates[-1] == pytest.approx(15.0)
+        # A new target moves the game with it (the rate's fraction stays).
+        router.handle("viewer", b'{"type":"control","seq":4,"target_fps":24}')
+        assert adapter.controller.goal.target_fps == 24.0
+        assert rates[-1] == pytest.approx(12.0)
 
     asyncio.run(scenario())
 

@@ -123,3 +123,26 @@ def test_a_probe_pads_the_encoders_frames_for_its_duration_and_no_longer() -> No
     assert state["probe_bps"] == 0
     after = rate.encoder.encode(pixels, frame_id=2, pts_us=2)
     assert after.padded_to == 0 and after.filler_bytes == 0
+
+
+def test_a_lower_source_rate_keeps_the_bits_per_second_and_thins_no_further() -> None:
+    """The game's frame rate was halved (adaptive quality): x264, which budgets per frame
+    at its configured 30 fps, is told twice the rate so each frame gets twice the bits;
+    and the bits-per-pixel floor is the halved rate's, so the link does not halve it
+    again for a rate that now carries it."""
+    rate, state = make(bitrate=200_000)
+    controller = rate.controller
+    controller.floor = 10_000
+    controller.input_seen("page", 0.0)
+    controller.feedback("page", FeedbackFields(player=True), 0.0)
+    controller._players["page"].rate = 50_000  # under the 30 fps floor (60k), over 15's
+    rate.set_source_fps(15.0)
+    rate.step(0.5)
+    assert rate.frame_divisor == 1
+    assert rate.encoder.bitrate == 100_000
+    assert state["bitrate"] == 50_000
+    # Below 20 fps the stream is never thinned further, however narrow the link.
+    controller._players["page"].rate = 12_000
+    controller.feedback("page", FeedbackFields(player=True), 0.9)
+    rate.step(1.0)
+    assert rate.frame_divisor == 1

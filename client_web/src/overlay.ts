@@ -60,12 +60,13 @@ export class Overlay {
 	}
 }
 
-/** "quality auto: temporal at 2x (+0.31 dB expected ...)": the setting and why. */
+/** "quality auto: temporal at 2x, 30 fps (+0.31 dB expected ...)": the setting and why. */
 function quality(q: Stats["quality"]): string {
 	if (!q?.mode) return "quality -";
 	const fg = q.frameGeneration ? ", frame generation" : "";
 	const scale = q.scale === undefined ? "" : ` at ${q.scale}x`;
-	return `quality ${q.mode}: ${q.upscaler ?? "-"}${scale}${fg}${q.reason ? ` (${q.reason})` : ""}`;
+	const rate = q.frameRate === undefined ? "" : `, ${q.frameRate} fps`;
+	return `quality ${q.mode}: ${q.upscaler ?? "-"}${scale}${fg}${rate}${q.reason ? ` (${q.reason})` : ""}`;
 }
 
 function fmt(value: number | undefined): string {

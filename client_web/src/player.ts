@@ -109,6 +109,7 @@ function main(): void {
 			upscaler: record.upscaler,
 			scale: record.scale,
 			frameGeneration: record.frame_generation,
+			frameRate: record.frame_rate,
 			reason: record.quality_reason,
 		};
 		predictedFlags.push(record.predicted === true);

@@ -145,7 +145,14 @@ export interface Stats {
 	/** Share of the last presented frames the server predicted (frame generation), 0..1. */
 	predictedShare: number;
 	/** What the server runs and why (adaptive quality), from the last presented frame's record. */
-	quality?: { mode?: string; upscaler?: string; scale?: number; frameGeneration?: boolean; reason?: string };
+	quality?: {
+		mode?: string;
+		upscaler?: string;
+		scale?: number;
+		frameGeneration?: boolean;
+		frameRate?: number;
+		reason?: string;
+	};
 	inputsSent: number;
 	inputPath: string;
 	inputSubscribers: number;

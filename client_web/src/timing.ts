@@ -26,6 +26,8 @@ export interface TimingRecord {
 	/** Adaptive quality: "auto" or "fixed", and why the current setting was chosen. */
 	quality?: string;
 	quality_reason?: string;
+	/** Frames per second the game renders now (adaptive quality may lower it). */
+	frame_rate?: number;
 	/** Wall-clock microseconds since the epoch, by stage label. */
 	stamps: Record<string, number>;
 }

@@ -45,12 +45,26 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         " follow without a reload; 1: the display size",
     )
     parser.add_argument(
+        "--frame-rate",
+        type=float,
+        default=None,
+        help="frames per second the game renders and the stream carries (at most the"
+        " session's configured rate; game time keeps its pace)",
+    )
+    parser.add_argument(
         "--quality",
         choices=("auto", "fixed"),
         default=None,
-        help="auto: the session adapts upscaler, scale and frame generation (and lets go of"
-        " every pin); fixed: it keeps what it runs. --upscaler/--scale/--frame-generation"
-        " under auto pin that field",
+        help="auto: the session adapts upscaler, scale, frame generation, encoded size and,"
+        " last, the frame rate (and lets go of every pin); fixed: it keeps what it runs."
+        " --upscaler/--scale/--frame-generation/--encode-scale/--frame-rate under auto pin"
+        " that field",
+    )
+    parser.add_argument(
+        "--target-fps",
+        type=float,
+        default=None,
+        help="the frame rate auto holds (at most the session's configured rate)",
     )
     parser.add_argument(
         "--preference",
@@ -80,7 +94,9 @@ def run(args: argparse.Namespace) -> int:
             cache_policy=args.cache_policy,
             frame_generation=args.frame_generation,
             encode_scale=args.encode_scale,
+            frame_rate=args.frame_rate,
             quality=args.quality,
+            target_fps=args.target_fps,
             preference=args.preference,
             min_scale=args.min_scale,
             max_scale=args.max_scale,
@@ -94,8 +110,8 @@ def run(args: argparse.Namespace) -> int:
     if not control.requested():
         print(
             "upcast control: nothing to change: give --upscaler, --scale, --cache-policy, "
-            "--frame-generation, --encode-scale and/or the quality goal (--quality, --preference, "
-            "--min-scale, --max-scale, --methods)",
+            "--frame-generation, --encode-scale, --frame-rate and/or the quality goal (--quality, "
+            "--target-fps, --preference, --min-scale, --max-scale, --methods)",
             file=sys.stderr,
         )
         return 2

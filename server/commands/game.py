@@ -95,6 +95,7 @@ def run(args: argparse.Namespace) -> int:
             on_scale=loop.request_scale,
             on_jitter=loop.request_jitter,
             on_frame_generation=loop.request_frame_generation,
+            on_frame_rate=loop.request_frame_rate,
         )
         if args.input
         else None

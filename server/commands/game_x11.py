@@ -63,7 +63,12 @@ def run_x11(args: argparse.Namespace) -> int:
         loop = GameLoop(source, ring, args.fps)
         serve_metrics(game_registry(loop), args.metrics_port, "game")
         receiver = (
-            InputReceiver(args.input, loop.push_input, convert=lambda message: message)
+            InputReceiver(
+                args.input,
+                loop.push_input,
+                on_frame_rate=loop.request_frame_rate,
+                convert=lambda message: message,
+            )
             if args.input
             else None
         )

@@ -18,9 +18,11 @@ def add_quality_arguments(parser: argparse.ArgumentParser) -> None:
         "--quality-preference",
         choices=("framerate", "resolution", "balanced"),
         default="framerate",
-        help="what auto gives up first: framerate (default) holds the rate and trades"
-        " picture; resolution never goes below the starting picture; balanced lets the rate"
-        " fall to 3/4 of the target first",
+        help="what auto gives up first: framerate (default) trades picture and lowers the"
+        " frame rate (30, 20, 15, 10 fps of 30) only when the cheapest picture misses;"
+        " resolution lowers the frame rate before the picture goes below the start;"
+        " balanced lets the rate sag to 3/4 of the target and lowers it before the"
+        " encoded size",
     )
     parser.add_argument(
         "--min-scale",

@@ -145,6 +145,8 @@ class FrameRateMonitor:
         # None: the rate is whatever the source sends (the relay does not know it).
         self.target_fps = target_fps
         self.window_s = window_s
+        # Budgets left to their default follow the target when it changes.
+        self._default_budgets = budgets_ms is None
         if budgets_ms is None:
             budgets_ms = default_budgets_ms(target_fps) if target_fps is not None else {}
         self.budgets_ms = dict(budgets_ms)
@@ -160,6 +162,15 @@ class FrameRateMonitor:
         self.frames = 0
         self.dropped = 0
         self.metrics = MonitorMetrics.for_registry(registry) if registry is not None else None
+
+    def set_target_fps(self, target_fps: float) -> None:
+        """The source now runs at ``target_fps`` (the quality controller changed the frame
+        rate): the rate is judged against it, and default budgets follow its period."""
+        if not target_fps > 0:
+            raise ValueError(f"target_fps must be positive, got {target_fps}")
+        self.target_fps = target_fps
+        if self._default_budgets:
+            self.budgets_ms = default_budgets_ms(target_fps)
 
     def frame(self, stamps: npt.NDArray[np.int64] | None = None, *, dropped: int = 0) -> None:
         """Record one frame (its timing record, if any) and frames lost before it."""

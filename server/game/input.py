@@ -49,6 +49,9 @@ class InputMessage(BaseModel):
     # Frame generation on/off from the next frame on: the game renders every other
     # frame fully and draws only its moving objects on the others.
     frame_generation: bool | None = None
+    # Frames per second the game renders (and the stream carries) from the next frame on;
+    # game time keeps its pace (a tick advances it by 1 / this rate). None: unchanged.
+    frame_rate: float | None = Field(default=None, ge=1.0, le=240.0, allow_inf_nan=False)
     # For sources that take raw input (a captured X11 application, server/game/x11):
     # the browser keys held now (KeyboardEvent.key lower-cased; None: unchanged), the
     # pointer's position as a fraction of the picture, relative pointer motion in
@@ -83,6 +86,7 @@ class InputReceiver:
         on_scale: Callable[[float], None] | None = None,
         on_jitter: Callable[[bool], None] | None = None,
         on_frame_generation: Callable[[bool], None] | None = None,
+        on_frame_rate: Callable[[float], None] | None = None,
         convert: Callable[[InputMessage], Any] = InputMessage.to_event,
     ) -> None:
         self.path = path
@@ -97,6 +101,7 @@ class InputReceiver:
         self._on_scale = on_scale
         self._on_jitter = on_jitter
         self._on_frame_generation = on_frame_generation
+        self._on_frame_rate = on_frame_rate
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._loop, name="game-input", daemon=True)
         self._thread.start()
@@ -124,6 +129,8 @@ class InputReceiver:
                 self._on_jitter(message.jitter)
             if message.frame_generation is not None and self._on_frame_generation is not None:
                 self._on_frame_generation(message.frame_generation)
+            if message.frame_rate is not None and self._on_frame_rate is not None:
+                self._on_frame_rate(message.frame_rate)
             self._sink(self._convert(message), message.seq)
 
     def close(self) -> None:

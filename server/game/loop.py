@@ -1,9 +1,14 @@
 """The game loop: render at a fixed rate straight into ring R, apply player input.
 
-Game time is ``frame_index / fps`` (not the wall clock), so a run is
-deterministic for the same input sequence however the machine keeps up. The
-loop paces against absolute deadlines; a frame that starts late is counted and
-the schedule resyncs instead of rushing to catch up.
+Game time advances by one period per frame (not by the wall clock), so a run is
+deterministic for the same input sequence however the machine keeps up: at a fixed
+rate it is ``frame_index / fps``. The loop paces against absolute deadlines; a frame
+that starts late is counted and the schedule resyncs instead of rushing to catch up.
+
+The frame rate can change at run time (``request_frame_rate``: the session's quality
+controller trades frame rate for CPU when nothing cheaper holds): from the next frame
+on the loop ticks at the new rate and each frame advances game time by the new
+period, so the game's world keeps its pace and only fewer pictures show it.
 
 Frame generation: ``fps`` stays the rate of game logic and of frames into
 ring R, but only every other tick is fully rendered. The tick after a full
@@ -95,6 +100,11 @@ class GameLoop:
         self.renderer = renderer
         self.ring = ring
         self.fps = fps
+        # The rate the loop ticks at now (request_frame_rate), and the (frame index,
+        # game time) the current rate counts from.
+        self.frame_rate = fps
+        self._wanted_frame_rate: float | None = None
+        self._time_base: tuple[int, float] = (0, 0.0)
         self.stats = GameStats()
         self.ended: SourceEnded | None = None  # why run() stopped early, if it did
         self._inputs: queue.SimpleQueue[tuple[Any, int]] = queue.SimpleQueue()
@@ -132,6 +142,28 @@ class GameLoop:
     def request_frame_generation(self, on: bool) -> None:
         """Turn frame generation on or off from the next frame on (thread-safe)."""
         self._wanted_frame_generation = on
+
+    def request_frame_rate(self, fps: float) -> None:
+        """Tick at ``fps`` from the next frame on (thread-safe); game time keeps its pace."""
+        if not (fps > 0 and fps < float("inf")):
+            log.warning("frame rate %r ignored: not a positive number", fps)
+            return
+        self._wanted_frame_rate = fps
+
+    def game_time(self, frame_index: int) -> float:
+        """Game time of frame ``frame_index`` at the current rate."""
+        base_index, base_t = self._time_base
+        return base_t + (frame_index - base_index) / self.frame_rate
+
+    def _apply_frame_rate(self, frame_index: int) -> None:
+        fps, self._wanted_frame_rate = self._wanted_frame_rate, None
+        if fps is None or fps == self.frame_rate:
+            return
+        # This frame keeps the time the old rate gave it (it was scheduled one old
+        # period after the last); the new period counts from here.
+        self._time_base = (frame_index, self.game_time(frame_index))
+        self.frame_rate = fps
+        log.info("frame rate %.3g fps (configured %.3g)", fps, self.fps)
 
     def _apply_scale(self) -> None:
         jitter, self._wanted_jitter = self._wanted_jitter, None
@@ -181,13 +213,14 @@ class GameLoop:
     def step(self, frame_index: int) -> bool:
         """Render one frame into ring R. False if no slot came in time (frame dropped)."""
         render_start = time.monotonic_ns(), time.time_ns()
+        self._apply_frame_rate(frame_index)
         self._apply_scale()
         self._apply_frame_generation()
         self._drain_inputs()
-        t = frame_index / self.fps
+        t = self.game_time(frame_index)
         dynamic_only = self._dynamic_only(frame_index, t)
         # Real-time rings never make the game wait; a lossless ring may, briefly.
-        lease = self.ring.acquire_write(timeout_s=1.0 / self.fps)
+        lease = self.ring.acquire_write(timeout_s=1.0 / self.frame_rate)
         if lease is None:
             self.stats.ring_timeouts += 1
             return False
@@ -232,7 +265,6 @@ class GameLoop:
         duration_s: float | None = None,
         max_frames: int | None = None,
     ) -> GameStats:
-        period = 1.0 / self.fps
         start = time.monotonic()
         next_deadline = start
         index = 0
@@ -241,6 +273,7 @@ class GameLoop:
             if max_frames is not None and index >= max_frames:
                 break
             now = time.monotonic()
+            period = 1.0 / self.frame_rate
             if duration_s is not None and now - start >= duration_s:
                 break
             if now < next_deadline:
@@ -257,7 +290,7 @@ class GameLoop:
                 self.ended = ended
                 break
             index += 1
-            next_deadline += period
+            next_deadline += 1.0 / self.frame_rate  # the rate this frame applied
             if now - last_report >= 10.0:
                 last_report = now
                 log.info("game: %s", self.stats)

@@ -45,6 +45,7 @@ def write_status(path: Path, state: str, live: LiveSession | None = None) -> Non
             scale=status.scale,
             frame_generation=status.frame_generation,
             encoded=status.encoded,
+            frame_rate=status.frame_rate,
             quality=status.quality,
             quality_reason=status.quality_reason,
             quality_at_floor=status.quality_at_floor,

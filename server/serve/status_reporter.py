@@ -41,6 +41,9 @@ class StatusReporter:
             expected_psnr_db=(
                 float(e) if isinstance(e := state.get("expected_psnr_db"), int | float) else None
             ),
+            frame_rate=(
+                float(r) if isinstance(r := state.get("frame_rate"), int | float) else None
+            ),
             fps=round(self.session.monitor.snapshot().fps, 2),
             frames=self.session.monitor.frames,
             last_control=self.last_control,

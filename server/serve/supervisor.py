@@ -272,7 +272,11 @@ class Supervisor:
                     boost=s.share_boost,
                     up=self.state_of(s, status) == "up",
                     fps=float(fps) if isinstance(fps, int | float) else None,
-                    target_fps=s.config.fps,
+                    # The rate it runs at now: a session that lowered its frame rate is
+                    # judged against that, not the configured one.
+                    target_fps=float(rate)
+                    if isinstance(rate := status.get("frame_rate"), int | float) and rate > 0
+                    else s.config.fps,
                     can_trade=status.get("quality") == "auto"
                     and status.get("quality_at_floor") is not True,
                     steady_s=now - s.steady_since,
@@ -373,6 +377,9 @@ class Supervisor:
                     "scale": status.get("scale", round(s.config.scale, 3)),
                     "frame_generation": status.get("frame_generation"),
                     "encoded": status.get("encoded"),
+                    # Frames per second the game renders now (adaptive quality may lower
+                    # it below target_fps, the configured rate, when nothing cheaper holds).
+                    "frame_rate": status.get("frame_rate", s.config.fps),
                     # Adaptive quality: auto or fixed, why this setting, and the picture
                     # the speed-against-error table expects of it.
                     "quality": status.get("quality"),

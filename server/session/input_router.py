@@ -53,6 +53,8 @@ class InputRouter:
         on_frame_generation: Callable[[bool], None] | None = None,
         on_cache_policy: Callable[[str | None], None] | None = None,
         on_encode_scale: Callable[[float], None] | None = None,
+        on_frame_rate: Callable[[float], None] | None = None,
+        max_frame_rate: float | None = None,
         on_control_result: Callable[[ControlResult], None] | None = None,
         on_message: Callable[[str, ViewerMessage], None] | None = None,
         color_only: bool = False,
@@ -74,6 +76,10 @@ class InputRouter:
         self.on_frame_generation = on_frame_generation
         # The encoder's size (the session's set_encode_scale); None: not adjustable here.
         self.on_encode_scale = on_encode_scale
+        # The game's frame rate was set (the session's monitor and encoder follow), and
+        # the highest a request may ask: the session's configured rate (None: no bound).
+        self.on_frame_rate = on_frame_rate
+        self.max_frame_rate = max_frame_rate
         # The worker's cache policy after a switch it accepted (None: the method has none).
         self.on_cache_policy = on_cache_policy
         # One request talks to the worker at a time, in arrival order (asyncio.Lock is
@@ -203,11 +209,13 @@ class InputRouter:
         scale: float | None = None,
         frame_generation: bool | None = None,
         encode_scale: float | None = None,
+        frame_rate: float | None = None,
     ) -> int | None:
         """A setting the session chose itself (the quality controller): the same path,
         checks and log lines as a person's control request from ``source``. Returns the
         request's seq (its result carries it), None when it asks nothing."""
-        if upscaler is None and scale is None and frame_generation is None and encode_scale is None:
+        asked = (upscaler, scale, frame_generation, encode_scale, frame_rate)
+        if all(x is None for x in asked):
             return None
         self._auto_seq += 1
         message = ControlMessage(
@@ -217,6 +225,7 @@ class InputRouter:
             scale=scale,
             frame_generation=frame_generation,
             encode_scale=encode_scale,
+            frame_rate=frame_rate,
         )
         self._control(source, message)
         return self._auto_seq
@@ -240,8 +249,8 @@ class InputRouter:
         if not requested:
             problems.append(
                 "empty control request: set upscaler, scale, cache_policy, frame_generation, "
-                "encode_scale and/or the quality goal (quality, preference, min_scale, "
-                "max_scale, methods)"
+                "encode_scale, frame_rate and/or the quality goal (quality, target_fps, "
+                "preference, min_scale, max_scale, methods)"
             )
         if message.upscaler is not None and message.upscaler not in registry.available():
             problems.append(
@@ -256,6 +265,7 @@ class InputRouter:
             # Refused before the switch, so the request is not half-applied.
             problems.append(f"cache_policy: upscaler {message.upscaler!r} has no layer cache")
         problems += _goal_problems(message)
+        problems += _frame_rate_problems(message, self.max_frame_rate)
         if self.color_only:
             problems += _color_only_problems(message)
         for name in ("upscaler", "cache_policy"):
@@ -293,6 +303,13 @@ class InputRouter:
             )
             if self.on_frame_generation is not None:
                 self.on_frame_generation(message.frame_generation)
+        if message.frame_rate is not None:
+            # The game ticks at the new rate from its next frame (game time keeps its
+            # pace); the session judges its rate and budgets its bits against it.
+            self._to_game(InputMessage(frame_rate=message.frame_rate, seq=message.seq))
+            log.info("frame rate %.3g fps requested by %s", message.frame_rate, source)
+            if self.on_frame_rate is not None:
+                self.on_frame_rate(message.frame_rate)
         if message.encode_scale is not None:
             assert self.on_encode_scale is not None  # refused above otherwise
             log.info("encode scale %.3g requested by %s", message.encode_scale, source)
@@ -365,6 +382,19 @@ def _goal_problems(message: ControlMessage) -> list[str]:
     low, high = message.min_scale, message.max_scale
     if low is not None and high is not None and low > high:
         problems.append(f"min_scale {low:g} is above max_scale {high:g}")
+    return problems
+
+
+def _frame_rate_problems(message: ControlMessage, highest: float | None) -> list[str]:
+    """A frame rate or a goal above what the session was configured for: its encoder,
+    budgets and the viewers' buffers were sized for that rate at most."""
+    if highest is None:
+        return []
+    problems = []
+    for name in ("frame_rate", "target_fps"):
+        value = getattr(message, name)
+        if value is not None and value > highest + 1e-6:
+            problems.append(f"{name} {value:g} is above the session's configured {highest:g} fps")
     return problems
 
 

@@ -134,6 +134,8 @@ class StreamingSession:
             on_frame_generation=self._frame_generation_set,
             on_cache_policy=self._cache_policy_set,
             on_encode_scale=self._encode_scale_set,
+            on_frame_rate=self._frame_rate_set,
+            max_frame_rate=settings.fps,
             color_only=settings.source != "game",
             gamepad_keys=settings.gamepad,
             on_message=self.rate.on_message,
@@ -183,6 +185,7 @@ class StreamingSession:
         if settings.cache_policy is not None:
             self.broadcast.stream_state["cache_policy"] = settings.cache_policy
         self.broadcast.stream_state["encoded"] = f"{display.width}x{display.height}"
+        self.broadcast.stream_state["frame_rate"] = settings.fps
         self.link: MoqLink | None = None
         self.connected = asyncio.Event()
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -219,6 +222,14 @@ class StreamingSession:
     def _encode_scale_set(self, scale: float) -> None:
         self._click()
         self.set_encode_scale(scale)
+
+    def _frame_rate_set(self, fps: float) -> None:
+        """The game renders at ``fps`` from its next frame: the monitor judges the rate
+        and the stage budgets against it, and the rate control budgets its bits by it."""
+        self._click()
+        self.monitor.set_target_fps(fps)
+        self.rate.set_source_fps(fps)
+        self.broadcast.stream_state["frame_rate"] = round(fps, 3)
 
     def _cache_policy_set(self, policy: str | None) -> None:
         self._click()

@@ -53,19 +53,37 @@ class SessionControl(BaseModel):
         description="display / encoded size: the encoder scales the upscaled picture down "
         "(1: the display size); the viewers follow a new catalog and video track",
     )
+    frame_rate: float | None = Field(
+        default=None,
+        ge=1.0,
+        le=240.0,
+        allow_inf_nan=False,
+        description="frames per second the game renders and the stream carries, at most "
+        "the session's configured rate; game time keeps its pace (fewer pictures show it)",
+    )
 
     quality: Literal["auto", "fixed"] | None = Field(
         default=None,
-        description="auto: the session chooses upscaler, scale and frame generation to "
-        "hold its frame rate with the best picture (and lets go of what earlier requests "
-        "pinned); fixed: it keeps what it runs. A request that sets upscaler, scale or "
-        "frame_generation pins that field under auto",
+        description="auto: the session chooses upscaler, scale, frame generation, encoded "
+        "size and, last, the frame rate to hold its target with the best picture (and lets "
+        "go of what earlier requests pinned); fixed: it keeps what it runs. A request that "
+        "sets upscaler, scale, frame_generation, encode_scale or frame_rate pins that field "
+        "under auto",
+    )
+    target_fps: float | None = Field(
+        default=None,
+        ge=1.0,
+        le=240.0,
+        allow_inf_nan=False,
+        description="the frame rate auto holds (at most the session's configured rate); "
+        "it lowers the frame rate below this only when no cheaper picture holds it",
     )
     preference: Literal["framerate", "resolution", "balanced"] | None = Field(
         default=None,
-        description="what auto gives up first: framerate holds the rate (the picture "
-        "gives), resolution never goes below the starting picture, balanced lets the rate "
-        "fall to 3/4 of the target first",
+        description="what auto gives up first: framerate trades picture and lowers the "
+        "frame rate only when the cheapest picture misses; resolution lowers the frame rate "
+        "before the picture goes below the start; balanced lets the rate sag to 3/4 of the "
+        "target and lowers it before the encoded size",
     )
     min_scale: float | None = Field(
         default=None, ge=1.0, le=4.0, allow_inf_nan=False, description="auto's lowest scale"
@@ -133,6 +151,11 @@ class StatusRecord(BaseModel):
         default=None,
         description="PSNR the current setting is expected to give against the game's "
         "ground truth (the speed-against-error table; a model figure, not a measurement)",
+    )
+    frame_rate: float | None = Field(
+        default=None,
+        description="frames per second the game renders now (below the configured rate "
+        "when adaptive quality or a control request lowered it)",
     )
     fps: float = Field(description="frames per second the session publishes (rolling)")
     frames: int = Field(description="frames published since the session started")

@@ -56,6 +56,9 @@ class SessionRate:
         self._state = stream_state
         self.frame_divisor = 1
         cfg = encoder.config
+        # The rate frames arrive at: the configured one until the game's frame rate is
+        # lowered (set_source_fps).
+        self.source_fps = cfg.fps
         self._bits_floor = MIN_BITS_PER_PIXEL * cfg.width * cfg.height * cfg.fps
         self._rate = cfg.target_bitrate
         self._metrics = RateMetrics.for_registry(registry) if registry is not None else None
@@ -76,6 +79,24 @@ class SessionRate:
     def forget(self, source: str) -> None:
         self.controller.forget(source)
 
+    def set_source_fps(self, fps: float) -> None:
+        """Frames now arrive at ``fps`` (the game's frame rate changed): the bits-per-pixel
+        floor and the bits each frame may take follow it."""
+        if not fps > 0:
+            raise ValueError(f"fps must be positive, got {fps}")
+        self.source_fps = fps
+        cfg = self.encoder.config
+        self._bits_floor = MIN_BITS_PER_PIXEL * cfg.width * cfg.height * fps
+        if self.enabled:
+            self.encoder.set_bitrate(self._encoder_rate())
+
+    def _encoder_rate(self) -> int:
+        """What the encoder is told: x264 budgets bits per frame at its configured rate,
+        so a stream sent at a fraction of it is told the rate over that fraction to spend
+        the chosen bits per second (the encoder's ceiling still caps it)."""
+        sent_fps = self.source_fps / self.frame_divisor
+        return round(self._rate * self.encoder.config.fps / sent_fps)
+
     def step(self, now_s: float) -> None:
         rate = self.controller.update(now_s)
         self._pad(now_s)
@@ -87,10 +108,10 @@ class SessionRate:
                     "frame rate %s: %.2f Mbit/s cannot hold %.0f fps",
                     "halved" if divisor > 1 else "restored",
                     rate / 1e6,
-                    self.encoder.config.fps,
+                    self.source_fps,
                 )
                 self.frame_divisor = divisor
-            self.encoder.set_bitrate(rate * divisor)
+            self.encoder.set_bitrate(self._encoder_rate())
             if self._metrics is not None:
                 self._metrics.changes.inc()
             state = self.controller.state
@@ -105,11 +126,11 @@ class SessionRate:
 
     def _pad(self, now_s: float) -> None:
         padding = self.controller.padding_bps(now_s) if self.enabled else 0.0
-        fps = self.encoder.config.fps / self.frame_divisor
+        fps = self.source_fps / self.frame_divisor
         self.encoder.pad_frames_to(int(padding / 8 / fps))
 
     def _divisor_for(self, rate: float) -> int:
-        if self.encoder.config.fps < MIN_THINNED_FPS:
+        if self.source_fps < MIN_THINNED_FPS:
             return 1
         if self.frame_divisor == 1:
             return 2 if rate < self._bits_floor else 1

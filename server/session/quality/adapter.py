@@ -96,6 +96,11 @@ class QualityMetrics:
         self.switches = Gauge(
             "upcast_quality_switches", "Settings switched by the controller", registry=registry
         )
+        self.frame_rate = Gauge(
+            "upcast_quality_frame_rate",
+            "Frame rate chosen (frames per second the game renders)",
+            registry=registry,
+        )
 
 
 class SessionQuality:
@@ -122,6 +127,8 @@ class SessionQuality:
         self._state = stream_state
         self._metrics = QualityMetrics(registry) if registry is not None else None
         self.decisions: list[Decision] = []
+        # The frame rate the game runs at (the configured one until a request changes it).
+        self._frame_rate = controller.goal.target_fps if controller is not None else None
         self._pending: dict[int, Decision] = {}  # our requests' seq -> what they asked
         self._sending: Decision | None = None
         self._publish()
@@ -146,6 +153,9 @@ class SessionQuality:
                             self.unavailable)  # fmt: skip
             return
         req = result.requested
+        frame_rate = req.get("frame_rate")
+        if isinstance(frame_rate, int | float):
+            self._frame_rate = float(frame_rate)
         self._set_goal(req, result.source)
         mode = req.get("quality")
         if mode == "auto":
@@ -157,15 +167,22 @@ class SessionQuality:
             log.info("quality: fixed (set by %s)", result.source)
         method, scale, fg = req.get("upscaler"), req.get("scale"), req.get("frame_generation")
         encode = req.get("encode_scale")
-        if method is not None or scale is not None or fg is not None or encode is not None:
+        rate = (
+            float(frame_rate) / self.controller.goal.target_fps
+            if isinstance(frame_rate, int | float)
+            else None
+        )
+        asked = (method, scale, fg, encode, rate)
+        if any(x is not None for x in asked):
             self.controller.pin(
                 method=method if isinstance(method, str) else None,
                 scale=float(scale) if isinstance(scale, int | float) else None,
                 frame_generation=fg if isinstance(fg, bool) else None,
                 encode_scale=float(encode) if isinstance(encode, int | float) else None,
+                rate=rate,
             )
             if self.enabled:
-                pinned = ("upscaler", "scale", "frame_generation", "encode_scale")
+                pinned = ("upscaler", "scale", "frame_generation", "encode_scale", "frame_rate")
                 log.info(
                     "quality: %s pinned by a control request from %s (auto adapts the rest)",
                     ", ".join(k for k in pinned if k in req),
@@ -174,6 +191,9 @@ class SessionQuality:
         self._publish()
 
     def _own_outcome(self, result: ControlResult) -> None:
+        frame_rate = result.requested.get("frame_rate")
+        if result.accepted and isinstance(frame_rate, int | float):
+            self._frame_rate = float(frame_rate)
         decision = self._pending.pop(result.seq, None)
         if decision is None and self._sending is not None:
             decision, self._sending = self._sending, None
@@ -181,8 +201,9 @@ class SessionQuality:
             return
         # The worker (or the router) refused part of it: what went through before the
         # refusal (the game's scale and frame generation) is set back too.
-        log.warning("quality: %s refused (%s); back to %s", decision.setting.describe(),
-                    result.reason, decision.previous.describe())  # fmt: skip
+        target = decision.target_fps
+        log.warning("quality: %s refused (%s); back to %s", decision.setting.describe(target),
+                    result.reason, decision.previous.describe(target))  # fmt: skip
         self.controller.refused(decision, result.reason or "refused")
         self._send(decision.previous, decision.setting)
 
@@ -190,7 +211,7 @@ class SessionQuality:
         assert self.controller is not None
         goal = self.controller.goal
         changes: dict[str, object] = {}
-        for key in ("preference", "min_scale", "max_scale"):
+        for key in ("target_fps", "preference", "min_scale", "max_scale"):
             if req.get(key) is not None:
                 changes[key] = req[key]
         methods = req.get("methods")
@@ -204,6 +225,16 @@ class SessionQuality:
             log.warning("quality goal from %s not applied: %s", source, exc)
             return
         log.info("quality goal set by %s: %s", source, changes)
+        if "target_fps" in changes:
+            self._follow_target()
+
+    def _follow_target(self) -> None:
+        """A new target: the game ticks at it times the current rate's fraction (a rate
+        off the new target's ladder is conformed at the next check)."""
+        assert self.controller is not None
+        wanted = self.controller.goal.target_fps * self.controller.setting.rate
+        if self._frame_rate is None or abs(wanted - self._frame_rate) > 1e-6:
+            self.router.apply_setting(AUTO_SOURCE, frame_rate=wanted)
 
     def step(self, now: float) -> Decision | None:
         if self.controller is None or not self.enabled:
@@ -249,6 +280,12 @@ class SessionQuality:
                 self._pending.pop(next(iter(self._pending)))
 
     def _send(self, new: Setting, old: Setting) -> int | None:
+        assert self.controller is not None
+        frame_rate = self.controller.goal.target_fps * new.rate
+        if self._frame_rate is not None and abs(frame_rate - self._frame_rate) < 1e-6:
+            frame_rate_asked: float | None = None
+        else:
+            frame_rate_asked = frame_rate
         return self.router.apply_setting(
             AUTO_SOURCE,
             upscaler=new.method if new.method != old.method else None,
@@ -259,6 +296,7 @@ class SessionQuality:
             encode_scale=(
                 new.encode_scale if abs(new.encode_scale - old.encode_scale) > 1e-6 else None
             ),
+            frame_rate=frame_rate_asked,
         )
 
     def _publish(self) -> None:
@@ -279,6 +317,8 @@ class SessionQuality:
             self._metrics.scale.set(st.setting.scale)
             self._metrics.encode_scale.set(st.setting.encode_scale)
             self._metrics.switches.set(st.switches)
+            if self._frame_rate is not None:
+                self._metrics.frame_rate.set(self._frame_rate)
             if st.headroom_cores is not None:
                 self._metrics.headroom.set(st.headroom_cores)
 

@@ -36,10 +36,17 @@ only when no setting at the current encoded size fits, and any change of it must
 gain ``ENCODE_SWITCH_COST_DB`` more (every viewer moves to a new track and waits for
 its first keyframe). A step up moves it one step of the benchmark's ladder at a time.
 
-Degradation preference (WebRTC's ``degradationPreference``): ``framerate`` (games:
-the rate holds, the picture gives), ``resolution`` (never below the picture it
-started with: the rate falls to what the host carries) and ``balanced`` (the rate
-may fall to ``BALANCED_FRACTION`` of the target before the picture gives).
+**The frame rate** is a knob too (``Setting.rate``, a fraction of the target on
+``RATE_LADDER``: 30, 20, 15, 10 fps of 30): the game ticks slower, keeping game time,
+so every stage costs that much less CPU. A lower rate is judged against itself (the
+miss, the budgets, the CPU), and a step up tries the next rate up before any better
+picture at the same rate: a rate below the target is a debt, paid back first.
+
+Degradation preference (WebRTC's ``degradationPreference``) says when the rate goes
+down: ``framerate`` (games) only when the cheapest setting at the full rate still
+misses, the picture gives first; ``balanced`` before the encoded size goes down, and
+the rate may sag to ``BALANCED_FRACTION`` of the target before anything is judged a
+miss; ``resolution`` before the picture falls below the one it started with.
 """
 
 from __future__ import annotations
@@ -54,6 +61,7 @@ from server.session.quality.model import (
     QualityModel,
     Setting,
     StageTimes,
+    rate_ladder,
     scale_ladder,
     settings_grid,
 )
@@ -135,10 +143,13 @@ class Decision:
     reason: str
     expected_psnr_db: float
     predicted: StageTimes
+    target_fps: float | None = None  # the goal's, to say a setting's frame rate in fps
 
     def log_line(self) -> str:
+        before = self.previous.describe(self.target_fps)
+        after = self.setting.describe(self.target_fps)
         return (
-            f"quality {self.direction}: {self.previous.describe()} -> {self.setting.describe()} "
+            f"quality {self.direction}: {before} -> {after} "
             f"(expected {self.expected_psnr_db:.2f} dB; {self.reason})"
         )
 
@@ -168,6 +179,7 @@ class _Pins:
     scale: float | None = None
     frame_generation: bool | None = None
     encode_scale: float | None = None
+    rate: float | None = None
 
 
 @dataclass
@@ -205,9 +217,11 @@ class QualityController:
         scale: float | None = None,
         frame_generation: bool | None = None,
         encode_scale: float | None = None,
+        rate: float | None = None,
     ) -> None:
         """Hold the given fields where a person set them (a control request did): the
-        controller adapts only the others. The setting takes them at once."""
+        controller adapts only the others. The setting takes them at once. ``rate`` is
+        a fraction of the goal's target frame rate."""
         if method is not None:
             self._pins.method = method
         if scale is not None:
@@ -216,12 +230,17 @@ class QualityController:
             self._pins.frame_generation = frame_generation
         if encode_scale is not None:
             self._pins.encode_scale = encode_scale
+        if rate is not None:
+            if not (math.isfinite(rate) and rate > 0):
+                raise ValueError(f"rate must be a positive fraction of the target, got {rate}")
+            self._pins.rate = rate
         now = self.state.setting
         self.state.setting = Setting(
             method if method is not None else now.method,
             scale if scale is not None else now.scale,
             frame_generation if frame_generation is not None else now.frame_generation,
             encode_scale if encode_scale is not None else now.encode_scale,
+            rate if rate is not None else now.rate,
         )
 
     def unpin(self) -> None:
@@ -236,7 +255,7 @@ class QualityController:
         self._blocked[decision.setting] = _Block(until, backoff)
         self._last_up = None
         self.state.setting = decision.previous
-        self.state.reason = f"{decision.setting.describe()} refused: {why}"
+        self.state.reason = f"{decision.setting.describe(self.goal.target_fps)} refused: {why}"
 
     # -- judging ---------------------------------------------------------------------
 
@@ -315,21 +334,22 @@ class QualityController:
                 and setting.encode_scale in self.model.encode_scales()
                 and setting.encode_scale <= setting.scale + 1e-6
             )
-        return methods_ok and scale_ok and fg_ok and encode_ok
+        return methods_ok and scale_ok and fg_ok and encode_ok and self._allowed_rate(setting.rate)
 
     def _conform(self, m: Measurement) -> Decision | None:
         """The goal changed under the current setting (another method list, bounds, a
         pin): the best allowed setting predicted to cost no more CPU than this one."""
         current = self.state.setting
-        budget = 1000.0 / self.goal.target_fps
-        here_cpu = self.model.predict(current).cpu_cores(self.goal.target_fps)
+        here_cpu = self.model.predict(current).cpu_cores(self._fps_of(current))
+        rate = current.rate if self._allowed_rate(current.rate) else self._rates()[0]
         best: tuple[float, Setting] | None = None
         cheapest: tuple[float, Setting] | None = None
-        for cand in self._candidates():
+        for cand in self._candidates([rate]):
             times = self.model.predict(cand)
-            cpu = times.cpu_cores(self.goal.target_fps)
+            cpu = times.cpu_cores(self._fps_of(cand))
             if cheapest is None or cpu < cheapest[0]:
                 cheapest = (cpu, cand)
+            budget = 1000.0 / self._fps_of(cand)
             if cpu > here_cpu * 1.05 or any(times.p50[s] > budget * DOWN_MARGIN for s in STAGES):
                 continue
             quality = self.model.expected_psnr(cand, m.scene)
@@ -345,16 +365,26 @@ class QualityController:
         since = [t for t in marks if t is not None]
         return math.inf if not since else now - max(since)
 
+    def _fps_of(self, setting: Setting) -> float:
+        """The frame rate a setting runs at."""
+        return self.goal.target_fps * setting.rate
+
+    def _allowed_rate(self, rate: float) -> bool:
+        return any(abs(rate - r) < 1e-6 for r in self._rates())
+
     def _judged_fps(self) -> float:
+        """The rate a window must reach: the current setting's (a lowered rate is judged
+        against itself), less the sag ``balanced`` allows."""
+        fps = self._fps_of(self.state.setting)
         if self.goal.preference == "balanced":
-            return self.goal.target_fps * BALANCED_FRACTION
-        return self.goal.target_fps
+            return fps * BALANCED_FRACTION
+        return fps
 
     def _miss(self, m: Measurement, p50: Mapping[str, float]) -> str | None:
         """Why this window misses the target, or None. The frame rate decides: a stage's
         p95 past its period on a shared host is often a preemption, not a cost, while a
         median past it caps the rate for sure."""
-        budget = 1000.0 / self.goal.target_fps
+        budget = 1000.0 / self._fps_of(self.state.setting)
         over = [s for s in STAGES if p50.get(s, 0.0) > budget]
         if over:
             s = over[0]
@@ -376,7 +406,16 @@ class QualityController:
 
     # -- choosing --------------------------------------------------------------------
 
-    def _candidates(self) -> list[Setting]:
+    def _rates(self) -> list[float]:
+        """The frame-rate fractions allowed, highest first."""
+        if self._pins.rate is not None:
+            return [self._pins.rate]
+        return rate_ladder(self.goal.target_fps)
+
+    def _candidates(self, rates: list[float] | None = None) -> list[Setting]:
+        """Every allowed setting at ``rates`` (default: the current rate)."""
+        if rates is None:
+            rates = [self.state.setting.rate]
         table = self.model.methods()
         methods = [x for x in table if not self.goal.methods or x in self.goal.methods]
         if not self.limits.temporal:
@@ -400,8 +439,8 @@ class QualityController:
             encodes = self.model.encode_scales()
         else:
             encodes = [1.0]
-        grid = [s for s in settings_grid(methods, scales, fgs, encodes) if s.method in table]
-        return grid
+        grid = settings_grid(methods, scales, fgs, encodes, rates)
+        return [s for s in grid if s.method in table]
 
     def _blocked_now(self, setting: Setting, now: float) -> bool:
         block = self._blocked.get(setting)
@@ -451,63 +490,111 @@ class QualityController:
             self._last_up = None
             reason = f"{miss}; the step up did not hold, not tried again for {backoff:.0f} s"
             return self._switch(m, before, "back", reason)
-        budget = 1000.0 / self.goal.target_fps
         now_times = self.model.predict(current)
         fps = m.fps if math.isfinite(m.fps) and m.fps > 0 else self._judged_fps()
         share = min(1.0, fps / self._judged_fps())
-        cpu_allowed = now_times.cpu_cores(self.goal.target_fps) * share * DOWN_MARGIN
-        here_cpu = now_times.cpu_cores(self.goal.target_fps)
+        here_cpu = now_times.cpu_cores(self._fps_of(current))
+        cpu_allowed = here_cpu * share * DOWN_MARGIN
+        fitting, cheapest = self._fitting(m, [current.rate], cpu_allowed)
+        # The encoded size goes down last: only when nothing at the current size fits.
+        keep = [f for f in fitting if f[1].encode_scale <= current.encode_scale + 1e-6]
+        if keep:
+            return self._switch(m, _best(keep), "down", miss)
+        preference = self.goal.preference
+        if preference == "balanced":
+            slower = self._slower(m, cpu_allowed, here_cpu, same_encode=True)
+            if slower is not None:
+                why = f"{miss}; a lower frame rate before a smaller encoded size"
+                return self._switch(m, slower, "down", why)
+        if fitting:
+            return self._switch(m, _best(fitting), "down", miss)
+        # The cheapest only when it is clearly cheaper: settings within a few percent of
+        # each other are all "the floor", and hopping between them costs frames.
+        if (
+            cheapest is not None
+            and cheapest[0] < here_cpu * FLOOR_GAIN
+            and cheapest[1] != current
+            and preference != "resolution"
+        ):
+            return self._switch(m, cheapest[1], "down", f"{miss}; nothing fits: the cheapest")
+        # Nothing cheaper at this frame rate: the rate gives.
+        slower = self._slower(m, cpu_allowed, here_cpu)
+        if slower is not None:
+            why = f"{miss}; nothing cheaper holds {self._fps_of(current):.3g} fps: a lower rate"
+            return self._switch(m, slower, "down", why)
+        self.state.at_floor = True
+        if not self._said_floor:
+            self._said_floor = True
+            self.state.reason = f"{miss}; nothing cheaper is allowed: at the lowest setting"
+        return None
+
+    def _fitting(
+        self, m: Measurement, rates: list[float], cpu_allowed: float
+    ) -> tuple[list[tuple[float, Setting, StageTimes]], tuple[float, Setting, StageTimes] | None]:
+        """The candidates at ``rates`` a step down may take, predicted to fit (every
+        stage's median within ``DOWN_MARGIN`` of its period, the session's CPU within
+        ``cpu_allowed``), each with its score (picture less the switch's cost); and the
+        cheapest candidate, fitting or not."""
+        current = self.state.setting
         fitting: list[tuple[float, Setting, StageTimes]] = []
         cheapest: tuple[float, Setting, StageTimes] | None = None
-        for cand in self._candidates():
+        for cand in self._candidates(rates):
             if cand != current and (
                 self._costlier_method(cand, current)
                 or cand.encode_scale < current.encode_scale - 1e-6
             ):
                 continue  # a step down encodes no larger and runs no slower a method
+            quality = self.model.expected_psnr(cand, m.scene)
+            if self.goal.preference == "resolution" and quality < self._floor_psnr - 0.05:
+                continue
             times = self.model.predict(cand)
-            cpu = times.cpu_cores(self.goal.target_fps)
+            cpu = times.cpu_cores(self._fps_of(cand))
             if cheapest is None or cpu < cheapest[0]:
                 cheapest = (cpu, cand, times)
             if cand == current:
                 continue
-            quality = self.model.expected_psnr(cand, m.scene)
-            if self.goal.preference == "resolution" and quality < self._floor_psnr - 0.05:
-                continue
+            budget = 1000.0 / self._fps_of(cand)
             fits_stages = all(times.p50[s] <= budget * DOWN_MARGIN for s in STAGES)
             if fits_stages and cpu <= cpu_allowed:
                 fitting.append((quality - self._switch_cost(current, cand), cand, times))
-        # The encoded size goes down last: only when nothing at the current size fits.
-        keep = [f for f in fitting if f[1].encode_scale <= current.encode_scale + 1e-6]
-        if keep or fitting:
-            _, best, _ = max(keep or fitting, key=lambda x: (x[0], -x[2].cpu_cores(1.0)))
-            return self._switch(m, best, "down", miss)
-        # The cheapest only when it is clearly cheaper: settings within a few percent of
-        # each other are all "the floor", and hopping between them costs frames.
-        near = cheapest is None or cheapest[0] > here_cpu * FLOOR_GAIN
-        if (
-            near
-            or cheapest is None
-            or cheapest[1] == current
-            or self.goal.preference == "resolution"
-        ):
-            self.state.at_floor = True
-            if not self._said_floor:
-                self._said_floor = True
-                self.state.reason = f"{miss}; nothing cheaper is allowed: at the lowest setting"
-                return None
+        return fitting, cheapest
+
+    def _slower(
+        self, m: Measurement, cpu_allowed: float, here_cpu: float, *, same_encode: bool = False
+    ) -> Setting | None:
+        """The best setting at the highest lower frame rate that fits; where none fits at
+        any, the cheapest at the lowest rate if it is clearly cheaper; else None."""
+        current = self.state.setting
+        lower = [r for r in self._rates() if r < current.rate - 1e-6]
+        for rate in lower:
+            fitting, _ = self._fitting(m, [rate], cpu_allowed)
+            if same_encode:
+                fitting = [f for f in fitting if f[1].encode_scale <= current.encode_scale + 1e-6]
+            if fitting:
+                return _best(fitting)
+        if not lower or same_encode:
             return None
-        return self._switch(m, cheapest[1], "down", f"{miss}; nothing fits: the cheapest")
+        _, cheapest = self._fitting(m, [lower[-1]], cpu_allowed)
+        if cheapest is None or cheapest[0] >= here_cpu * FLOOR_GAIN:
+            return None
+        return cheapest[1]
 
     def _up(self, m: Measurement) -> Decision | None:
         current = self.state.setting
-        budget = 1000.0 / self.goal.target_fps
         here = self.model.predict(current)
-        here_cpu = here.cpu_cores(self.goal.target_fps)
+        here_cpu = here.cpu_cores(self._fps_of(current))
         here_q = self.model.expected_psnr(current, m.scene)
         idle = _idle(m)
         # Without a host reading, a step may add a tenth of what the session takes.
         spare = (idle - HOST_RESERVE * m.host_cores) if idle is not None else 0.1 * here_cpu
+        spare_text = f"{idle:.2f} idle cores" if idle is not None else "no host reading"
+        faster = self._faster(m, here_cpu, spare)
+        if faster is not None:
+            cand, extra = faster
+            reason = f"{self._fps_of(cand):.3g} fps again for {extra:+.2f} cores ({spare_text})"
+            self._last_up = (m.now, current)
+            return self._switch(m, cand, "up", reason)
+        budget = 1000.0 / self._fps_of(current)
         best: tuple[float, Setting, float] | None = None
         for cand in self._candidates():
             if cand == current or self._blocked_now(cand, m.now):
@@ -519,7 +606,7 @@ class QualityController:
             times = self.model.predict(cand)
             if any(times.p50[s] > budget * UP_MARGIN for s in STAGES):
                 continue
-            extra = times.cpu_cores(self.goal.target_fps) - here_cpu
+            extra = times.cpu_cores(self._fps_of(cand)) - here_cpu
             if extra > 0 and extra > spare:
                 continue
             gain = (
@@ -530,10 +617,38 @@ class QualityController:
         if best is None:
             return None
         gain, cand, extra = best
-        spare_text = f"{idle:.2f} idle cores" if idle is not None else "no host reading"
         reason = f"+{gain:.2f} dB expected for {extra:+.2f} cores ({spare_text})"
         self._last_up = (m.now, current)
         return self._switch(m, cand, "up", reason)
+
+    def _faster(
+        self, m: Measurement, here_cpu: float, spare: float
+    ) -> tuple[Setting, float] | None:
+        """Below the target rate: the best-looking setting at the next rate up predicted
+        to fit there (``UP_MARGIN``) within the spare cores, and the cores it adds."""
+        current = self.state.setting
+        higher = [r for r in self._rates() if r > current.rate + 1e-6]
+        if not higher:
+            return None
+        rate = min(higher)
+        best: tuple[float, Setting, float] | None = None
+        for cand in self._candidates([rate]):
+            if self._blocked_now(cand, m.now) or self._encode_step(current, cand) > 1:
+                continue
+            quality = self.model.expected_psnr(cand, m.scene)
+            if self.goal.preference == "resolution" and quality < self._floor_psnr - 0.05:
+                continue
+            times = self.model.predict(cand)
+            budget = 1000.0 / self._fps_of(cand)
+            if any(times.p50[s] > budget * UP_MARGIN for s in STAGES):
+                continue
+            extra = times.cpu_cores(self._fps_of(cand)) - here_cpu
+            if extra > 0 and extra > spare:
+                continue
+            score = quality - self._switch_cost(current, cand)
+            if best is None or score > best[0]:
+                best = (score, cand, extra)
+        return None if best is None else (best[1], best[2])
 
     def _up_reach(self, current: Setting) -> float:
         """How far one step up may move the scale: one ladder step, or straight back to
@@ -579,7 +694,13 @@ class QualityController:
             reason=why,
             expected_psnr_db=self.state.expected_psnr_db,
             predicted=self.model.predict(setting),
+            target_fps=self.goal.target_fps,
         )
+
+
+def _best(scored: list[tuple[float, Setting, StageTimes]]) -> Setting:
+    """The highest score; between equals, the cheaper."""
+    return max(scored, key=lambda x: (x[0], -x[2].cpu_cores(1.0)))[1]
 
 
 def _finite(values: Mapping[str, float]) -> dict[str, float]:

@@ -30,8 +30,9 @@ alone:
 - *encode*: as measured at each encoded size; at one not measured yet, the nearest
   measured one times the benchmark's time ratio between the two sizes.
 
-The CPU a setting takes is the sum of the stage medians at the target rate, in
-cores: the three stages run in separate processes on the same cores.
+The CPU a setting takes is the sum of the stage medians at its frame rate (the
+target times the setting's ``rate``), in cores: the three stages run in separate
+processes on the same cores. A stage's time is per frame, whatever the rate.
 """
 
 from __future__ import annotations
@@ -61,11 +62,19 @@ class Setting:
     scale: float
     frame_generation: bool = False
     encode_scale: float = 1.0
+    rate: float = 1.0  # the frame rate, as a fraction of the goal's target
 
-    def describe(self) -> str:
+    def describe(self, target_fps: float | None = None) -> str:
         fg = ", frame generation" if self.frame_generation else ""
         enc = f", encoded at 1/{self.encode_scale:g}" if self.encode_scale != 1.0 else ""
-        return f"{self.method} at {self.scale:g}x{fg}{enc}"
+        rate = ""
+        if abs(self.rate - 1.0) > 1e-6:
+            rate = (
+                f", at {target_fps * self.rate:.3g} fps"
+                if target_fps is not None
+                else f", at {self.rate:.3g} of the frame rate"
+            )
+        return f"{self.method} at {self.scale:g}x{fg}{enc}{rate}"
 
 
 @dataclass(frozen=True)
@@ -341,16 +350,32 @@ def settings_grid(
     scales: Iterable[float],
     frame_generation: Iterable[bool],
     encode_scales: Iterable[float] = (1.0,),
+    rates: Iterable[float] = (1.0,),
 ) -> list[Setting]:
     """Every combination, less an encoded size below the render size (it would throw
     the upscaler's work away)."""
     encodes = list(encode_scales)
     fgs = list(frame_generation)
+    rate_list = list(rates)
     return [
-        Setting(m, s, fg, e)
+        Setting(m, s, fg, e, r)
+        for r in rate_list
         for m in methods
         for s in scales
         for fg in fgs
         for e in encodes
         if e <= s + 1e-6
     ]
+
+
+# Fractions of the target frame rate the controller may run at: whole divisions of a
+# display's refresh at 30 and 60 fps targets (30, 20, 15, 10 fps of 30), so every frame
+# shows for the same number of refreshes.
+RATE_LADDER = (1.0, 2.0 / 3.0, 0.5, 1.0 / 3.0)
+MIN_LADDER_FPS = 10.0  # below this a stream is a slide show: never chosen
+
+
+def rate_ladder(target_fps: float) -> list[float]:
+    """The ladder's fractions whose frame rate stays at or above ``MIN_LADDER_FPS``
+    (always the full rate)."""
+    return [r for r in RATE_LADDER if r == 1.0 or target_fps * r >= MIN_LADDER_FPS - 1e-6]
