@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import pytest
 
-from server.bench.adaptive import _back_at, _bins, _changes, _parse_fixed, _size_for
+from server.bench.adaptive import _back_at, _bins, _changes, _parse_fixed, _rate_at, _size_for
 from server.session.quality.model import Setting
 
 
@@ -48,3 +48,12 @@ def test_fixed_settings_and_their_render_sizes() -> None:
     assert _size_for("1280x720", 2.667) == "480x270"
     with pytest.raises(ValueError):
         _parse_fixed("temporal@two")
+
+
+def test_each_second_is_held_to_the_rate_the_session_ran_at() -> None:
+    """A session that lowered its frame rate at 3 s is judged against 15 fps after it."""
+    timeline = [(0.2, Setting("bilinear", 4.0)), (3.1, Setting("bilinear", 4.0, rate=0.5))]
+    assert _rate_at(timeline, 0.0) == 1.0
+    assert _rate_at(timeline, 2.5) == 1.0
+    assert _rate_at(timeline, 3.5) == 0.5
+    assert _rate_at([], 9.0) == 1.0

@@ -9,6 +9,8 @@ session runs. Per session the report has:
 
 - the frame rate the viewer received, per one-second bin: mean, minimum, the share of
   bins at 90 % of the target or more, and the mean before, during and after the hog;
+- the frame rate the session chose (adaptive quality lowers it when nothing cheaper
+  holds the target): its mean, and the share of bins at 90 % of it or more;
 - how long after the hog started the rate was back at 90 % (two bins in a row), and
   how long after it ended the setting stepped up again;
 - the settings it ran and for how long, the switches (each is one log line of the
@@ -174,11 +176,15 @@ async def _run_serve(
                     published.setdefault(r["broadcast"], []).append(
                         (float(r["frames_at"] or 0.0), int(r["frames"]))
                     )
+                    frame_rate = r.get("frame_rate")
                     setting = Setting(
                         str(r["upscaler"]),
                         float(r["scale"]),
                         bool(r.get("frame_generation")),
                         _encode_scale(args.display_size, r.get("encoded")),
+                        float(frame_rate) / args.fps
+                        if isinstance(frame_rate, int | float) and frame_rate > 0
+                        else 1.0,
                     )
                     timeline.setdefault(r["broadcast"], []).append((now - start, setting))
             await asyncio.sleep(1.0)
@@ -210,6 +216,16 @@ async def _run_serve(
         if link is not None and not link.closed:
             link.wt.close(0, "bench over")
         stop_child(proc, 60)
+
+
+def _rate_at(timeline: list[tuple[float, Setting]], t: float) -> float:
+    """The frame-rate fraction of the last poll at or before ``t`` (1 before any)."""
+    rate = 1.0
+    for at, setting in timeline:
+        if at > t:
+            break
+        rate = setting.rate
+    return rate
 
 
 def _encode_scale(display: str, encoded: object) -> float:
@@ -262,7 +278,11 @@ def _add_session(
     ]
     seconds: dict[str, int] = {}
     for _, s in timeline:
-        seconds[s.describe()] = seconds.get(s.describe(), 0) + 1
+        label = s.describe(target)
+        seconds[label] = seconds.get(label, 0) + 1
+    # The rate the session ran at in each bin (the last poll before it): a session that
+    # lowered its frame rate is held to that rate by this figure, to the target by the other.
+    chosen = [_rate_at(timeline, i + 1.5) * target for i in range(n)]
     return report.add_case(
         f"{case.name}: {broadcast}",
         sessions=case.sessions,
@@ -272,6 +292,10 @@ def _add_session(
         viewer_fps_mean=round(_mean(bins), 2),
         viewer_fps_min=min(bins) if bins else 0.0,
         share_of_seconds_at_90pct=round(sum(b >= HOLD * target for b in bins) / max(1, n), 3),
+        frame_rate_mean=round(_mean(chosen), 2),
+        share_of_seconds_at_90pct_of_its_rate=round(
+            sum(b >= HOLD * c for b, c in zip(bins, chosen, strict=True)) / max(1, n), 3
+        ),
         viewer_fps_before_hog=round(_mean(bins[:third]), 2),
         viewer_fps_during_hog=round(_mean(bins[third : 2 * third]), 2),
         viewer_fps_after_hog=round(_mean(bins[2 * third :]), 2),
@@ -326,7 +350,9 @@ def run(args: argparse.Namespace) -> int:
         for c in report.cases[-case.sessions :]:
             print(
                 f"  {c['name']}: {c['viewer_fps_mean']:.1f} fps (min {c['viewer_fps_min']:.0f}, "
-                f"{c['share_of_seconds_at_90pct']:.0%} of seconds at 90 %; published "
+                f"{c['share_of_seconds_at_90pct']:.0%} of seconds at 90 %; ran at "
+                f"{c['frame_rate_mean']:.1f} fps, {c['share_of_seconds_at_90pct_of_its_rate']:.0%} "
+                f"of seconds at 90 % of that; published "
                 f"{c.get('session_published_fps', '-')}), expected "
                 f"{c['expected_psnr_db_table']} dB, {c['switches']} switches"
             )
