@@ -38,6 +38,15 @@ def test_verdicts() -> None:
     )
     assert queue.decide(floor, 0.0).action == "queue"
     assert admit.decide(floor, 0.0).action == "start"
+    # A session holding a frame rate its controller lowered holds less than it was asked.
+    slowed = [row("game-1", frame_rate=30.0), row("game-2", frame_rate=15.0, fps=14.9)]
+    verdict = refuse.decide(slowed, 0.0)
+    assert verdict.action == "refuse"
+    assert verdict.reason == (
+        "the host cannot hold another session: game-2 runs at 15 of 30 fps: nothing cheaper "
+        "held its target"
+    )
+    assert refuse.decide([row("game-1", frame_rate=30.0)], 0.0).action == "start"
     # A session that has not settled yet says nothing about the host: wait for it.
     assert refuse.decide([row("game-1", up_for_s=SETTLE_S - 1)], 0.0).action == "wait"
     assert refuse.decide([row("game-1", state="starting", up_for_s=None)], 0.0).action == "wait"

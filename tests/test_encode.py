@@ -118,6 +118,15 @@ def test_periodic_keyframes_follow_gop() -> None:
     assert [i for i, k in enumerate(keys) if k] == [0, 6, 12]
 
 
+def test_periodic_keyframes_keep_their_period_at_a_lower_frame_rate() -> None:
+    """Frames at a third of the configured rate (a lowered frame rate): an IDR every
+    gop_seconds of stream time, not every keyint frames (which would be 3x as long)."""
+    enc = VideoEncoder(EncoderConfig(W, H, fps=FPS, gop_seconds=0.4))
+    keys = [enc.encode(textured(i), i, i * 3 * FRAME_US).keyframe for i in range(13)]
+    assert [i for i, k in enumerate(keys) if k] == [0, 4, 8, 12]
+    assert enc.periodic_keyframes == 3 and enc.forced_keyframes == 0
+
+
 def test_codec_string_matches_sps() -> None:
     enc = VideoEncoder(EncoderConfig(1280, 720))
     sps = enc.avc.sps

@@ -7,6 +7,12 @@ about one frame interval to transmit, scene cuts off (keyframes only when we
 want a new MoQ group), IDRs on demand, and either periodic IDRs or periodic
 intra refresh.
 
+Periodic IDRs come every ``gop_seconds`` of stream time, whatever the frame rate: x264's
+keyint counts frames at the configured rate, so a stream sent at a fraction of it (the
+rate control's every other frame, a frame rate the quality controller lowered) would
+otherwise stretch its groups, and every viewer that joins or skips a group, the time it
+waits for a keyframe, by that fraction.
+
 Intra refresh (``intra_refresh=True``) sweeps a column of intra blocks across
 the picture once per ``gop_seconds`` instead of sending a whole IDR: every frame
 costs about the same, so a lossy or narrow link sees no keyframe spike, and a
@@ -218,6 +224,8 @@ class VideoEncoder:
         self._last_pts_us: int | None = None
         self._keyframe_requested = False
         self._last_keyframe_pts_us: int | None = None
+        self._last_idr_pts_us: int | None = None  # any IDR, for the periodic ones
+        self.periodic_keyframes = 0  # forced by stream time (see the module doc)
         self._bitrate = config.target_bitrate
         self._pending_bitrate: int | None = None
         self._min_fragment_bytes = 0
@@ -322,7 +330,8 @@ class VideoEncoder:
         t_x264 = time.perf_counter_ns()
         yuv.pts = pts_us
         forced = self._take_keyframe_request(pts_us)
-        if forced:
+        periodic = not forced and self._periodic_idr_due(pts_us)
+        if forced or periodic:
             yuv.pict_type = PictureType.I
         packets = self._codec.encode(yuv)
         t_box = time.perf_counter_ns()
@@ -339,8 +348,11 @@ class VideoEncoder:
             # Any IDR serves a pending request and restarts the cooldown.
             self._keyframe_requested = False
             self._last_keyframe_pts_us = pts_us
+            self._last_idr_pts_us = pts_us
         if forced:
             self.forced_keyframes += 1
+        if periodic and keyframe:
+            self.periodic_keyframes += 1
         if new_config is not None:
             if not keyframe:
                 raise RuntimeError("x264 reopened at a new size but its first frame is no IDR")
@@ -402,6 +414,15 @@ class VideoEncoder:
         self._sequence = 0  # a new track: its fragments count from 1
         self.size_changes += 1
         return self.encoded_config
+
+    def _periodic_idr_due(self, pts_us: int) -> bool:
+        """A GOP of stream time has passed since the last IDR (half a frame early, so at
+        the configured rate x264's own keyint and this pick the same frame)."""
+        cfg = self.config
+        last = self._last_idr_pts_us
+        if cfg.intra_refresh or last is None:
+            return False
+        return pts_us - last >= cfg.gop_seconds * 1e6 - cfg.frame_duration_us / 2
 
     def _take_keyframe_request(self, pts_us: int) -> bool:
         if not self._keyframe_requested:

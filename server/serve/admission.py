@@ -6,7 +6,10 @@ server/session/quality/controller.py). While any running session says so, one mo
 session would only take frames from all of them, so the next one is refused (policy
 ``refuse``, the default: it is not started and ``/sessions`` says why) or queued
 (``queue``: it starts once no session has been at its floor for ``CLEAR_S``, say after
-another session ended). ``admit`` starts every session at once, as before.
+another session ended). ``admit`` starts every session at once, as before. A session
+whose controller lowered its frame rate below its target (nothing cheaper held it,
+``frame_rate`` in its row) refuses the next one the same way: it holds a rate, but not
+the one it was asked for.
 
 A session's floor is known only after its controller has judged a few windows, so
 under ``refuse`` and ``queue`` the sessions start one after the other: the next waits
@@ -50,19 +53,23 @@ class Admission:
     def decide(self, running: Sequence[Mapping[str, Any]], now: float) -> Verdict:
         """Whether the next session may start, given the running sessions' rows
         (``state``, ``quality``, ``quality_at_floor``, ``up_for_s``, ``fps``,
-        ``target_fps``, ``broadcast``) at ``now`` (monotonic seconds)."""
+        ``target_fps``, ``frame_rate``, ``broadcast``) at ``now`` (monotonic seconds)."""
         if self.policy == "admit":
             return Verdict("start", "admission off")
         auto = [r for r in running if r.get("quality") == "auto"]
-        floor = [r for r in auto if r.get("quality_at_floor") is True and r.get("state") == "up"]
-        if floor:
+        up = [r for r in auto if r.get("state") == "up"]
+        floor = [r for r in up if r.get("quality_at_floor") is True]
+        slowed = [r for r in up if _lowered_rate(r)]
+        if floor or slowed:
             self._floor_clear_since = None
-            r = floor[0]
+            r = (floor or slowed)[0]
             fps, target = _number(r.get("fps")), _number(r.get("target_fps"))
-            reason = (
-                f"the host cannot hold another session: {r.get('broadcast')} publishes "
-                f"{fps:.1f} of {target:.0f} fps at the cheapest setting it may run"
-            )
+            if floor:
+                what = f"publishes {fps:.1f} of {target:.0f} fps at the cheapest setting it may run"
+            else:
+                rate = _number(r.get("frame_rate"))
+                what = f"runs at {rate:.3g} of {target:.0f} fps: nothing cheaper held its target"
+            reason = f"the host cannot hold another session: {r.get('broadcast')} {what}"
             return Verdict("refuse" if self.policy == "refuse" else "queue", reason)
         settling = [r for r in auto if _number(r.get("up_for_s")) < SETTLE_S]  # not up: 0
         if settling:
@@ -76,6 +83,12 @@ class Admission:
         """A queued session starts only after CLEAR_S without any session at its floor."""
         since = self._floor_clear_since
         return since is not None and now - since >= CLEAR_S
+
+
+def _lowered_rate(row: Mapping[str, Any]) -> bool:
+    """The session runs below its target frame rate (its controller lowered it)."""
+    rate, target = _number(row.get("frame_rate")), _number(row.get("target_fps"))
+    return 0.0 < rate < target - 1e-6
 
 
 def _number(value: object) -> float:

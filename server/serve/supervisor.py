@@ -166,6 +166,7 @@ class Supervisor:
                     "quality_at_floor": status.get("quality_at_floor"),
                     "fps": status.get("fps", 0.0),
                     "target_fps": s.config.fps,
+                    "frame_rate": status.get("frame_rate"),
                     "up_for_s": now - s.started_at if state == "up" else 0.0,
                 }
             )
