@@ -10,6 +10,7 @@ from hypothesis import strategies as st
 from server.moq import events as ev
 from server.moq.errors import ErrorCode
 from server.moq.limits import MoqLimits
+from server.moq.relay_core import MAX_REFUSED_SUBSCRIBES
 from server.moq.session import MoqSession
 from server.moq.transmit import ResetStream
 from tests.moq_pipe import RelayNet
@@ -138,11 +139,64 @@ def test_viewer_past_its_max_latency_is_skipped_on_poll() -> None:
     net.now = 0.05
     assert net.relay.poll() == set()
     net.now = 0.2
-    assert net.relay.poll() == {"v"}
+    assert net.relay.poll() == {"v", "pub"}  # the publisher is nudged for a keyframe
     net.pipes["v"].release()
     net.pump()
     closed = of(viewer.take_events(), ev.GroupClosed)
     assert closed and closed[0].error_code == ErrorCode.SKIPPED
+
+
+def test_a_skipped_viewer_nudges_the_publisher_for_a_keyframe_at_most_once_a_second() -> None:
+    """moq-lite cannot ask for a keyframe: the relay subscribes once more (our publisher
+    starts a new subscriber at a keyframe) and cancels that as soon as it is accepted;
+    the skipped viewer joins the group the keyframe opens, instead of waiting seconds."""
+    net = RelayNet()
+    publisher = net.connect("pub")
+    publisher.publish("game")
+    net.pump()
+    viewer = net.connect("v")
+    viewer.subscribe("game", "video", max_latency_ms=100)
+    net.pump()
+    request = serve(net, publisher)["video"]
+    net.pipes["v"].hold_to_client = True
+    stream = send_group(publisher, request, 0, [b"k0"])
+    net.pump()
+    net.now = 0.2
+    net.relay.poll()
+    net.pump()
+    nudges = of(publisher.take_events(), ev.SubscribeRequested)
+    assert [(n.broadcast, n.track) for n in nudges] == [("game", "video")]
+    assert nudges[0].request_id != request
+    publisher.accept_subscribe(nudges[0].request_id)
+    net.pump()
+    cancelled = of(publisher.take_events(), ev.SubscribeCancelled)
+    assert [c.request_id for c in cancelled] == [nudges[0].request_id]
+    # The publisher's keyframe opens a group on the relay's subscription: the viewer
+    # joins it. Nothing of the nudge's own subscription reaches anyone.
+    publisher.finish_group(stream)
+    send_group(publisher, request, 1, [b"k1"])
+    net.pipes["v"].release()
+    net.pump()
+    assert frames(viewer)[-1] == b"k1"
+    stats = net.relay.stats("pub")
+    assert stats is not None and stats.keyframe_nudges == 1
+    # Skipped again within the second: no second nudge; after it, one more.
+    net.pipes["v"].hold_to_client = True
+    stream = send_group(publisher, request, 2, [b"k2"])
+    net.pump()
+    net.now = 0.5
+    net.relay.poll()
+    net.pump()
+    assert of(publisher.take_events(), ev.SubscribeRequested) == []
+    publisher.finish_group(stream)
+    net.now = 1.1
+    send_group(publisher, request, 3, [b"k3"])
+    net.pump()
+    net.now = 1.3
+    net.relay.poll()
+    net.pump()
+    assert len(of(publisher.take_events(), ev.SubscribeRequested)) == 1
+    assert stats.keyframe_nudges == 2
 
 
 def test_finished_groups_that_went_stale_are_skipped_too() -> None:
@@ -205,6 +259,16 @@ def test_one_session_holds_at_most_two_subscriptions_of_a_track() -> None:
     other.subscribe("game", "video")
     net.pump()
     assert net.relay.viewer_count("game", "video") == 3
+    # Refused again and again: a flood, not a player; that one session is closed.
+    relay_side = net.pipes["v"].server
+    for _ in range(MAX_REFUSED_SUBSCRIBES):
+        viewer.subscribe("game", "video")
+        net.pump()
+        if relay_side.closed:
+            break
+    assert relay_side.closed
+    assert net.pipes["v"].closes["server"].error_code == ErrorCode.LIMIT_EXCEEDED
+    assert net.relay.viewer_count("game", "video") == 1  # w's, untouched
 
 
 def test_garbage_from_one_viewer_closes_only_that_session() -> None:

@@ -20,6 +20,15 @@ Choices (and why):
   would otherwise take a whole finished group per group, each under the limit, without
   bound. Nothing is buffered without bound. A viewer with no QUIC stream credit left
   (MAX_STREAMS: it stopped reading) misses each group that starts meanwhile the same way.
+- A viewer that was skipped, or that joins where no group can be replayed, waits for the
+  next group, which only a keyframe starts: with intra refresh that is the publisher's
+  safety IDR, seconds away, and moq-lite has no message to ask for one. So the relay
+  *nudges* the publisher: a second, short-lived SUBSCRIBE to the same track, cancelled
+  as soon as it is accepted (its groups are ignored). A publisher that starts a new
+  subscriber at a keyframe (ours does: server/session/broadcast.py) sends one to every
+  subscriber, the relay's own included; any other sees one more subscriber come and go.
+  At most one nudge per track per ``nudge_interval_s``, so a viewer skipped over and over
+  cannot make the stream all keyframes.
 - Publisher leaves: its broadcasts are announced inactive and viewer subscriptions are
   ended (FIN). Viewers re-subscribe when the broadcast is announced again. We do not keep
   viewers attached across publishers: a new publisher restarts group sequences, and an
@@ -81,6 +90,9 @@ class OpenAccess:
 
 
 OPEN_ACCESS = OpenAccess()
+# Subscriptions refused over max_subscriptions_per_track before the session is closed.
+MAX_REFUSED_SUBSCRIBES = 64
+
 # on_denied(connection, "publish" | "subscribe", path): the adapter logs and counts.
 DeniedHook = Callable[[ConnId, str, str], None]
 
@@ -95,6 +107,7 @@ class ConnStats:
     bytes_out: int = 0
     groups_skipped: int = 0
     subscribes_refused: int = 0  # over max_subscriptions_per_track
+    keyframe_nudges: int = 0  # short-lived subscribes sent to this publisher (module doc)
 
 
 @dataclass(slots=True)
@@ -105,6 +118,7 @@ class _Conn:
     stats: ConnStats = field(default_factory=ConnStats)
     broadcasts: set[str] = field(default_factory=set)
     upstream: dict[int, TrackKey] = field(default_factory=dict)  # our subscription id
+    nudges: set[int] = field(default_factory=set)  # our keyframe-nudge subscription ids
 
 
 @dataclass(slots=True)
@@ -147,6 +161,7 @@ class _Track:
     groups: dict[int, _Group] = field(default_factory=dict)  # upstream group stream -> group
     latest: int | None = None  # upstream stream of the newest group
     viewers: dict[ViewerKey, _Viewer] = field(default_factory=dict)
+    nudged_at: float | None = None  # when the publisher was last nudged for a keyframe
 
 
 class RelayCore:
@@ -159,6 +174,7 @@ class RelayCore:
         default_max_latency_s: float | None = None,
         max_group_cache_bytes: int = 32 * 1024 * 1024,
         max_subscriptions_per_track: int = 2,
+        nudge_interval_s: float = 1.0,
         on_frame: Callable[[TrackKey, int, float], None] | None = None,
         on_denied: DeniedHook | None = None,
     ) -> None:
@@ -166,7 +182,9 @@ class RelayCore:
         every frame a publisher delivers: the relay's monitor and metrics.
         ``max_subscriptions_per_track``: concurrent subscriptions of one connection to
         one track (two lets a player overlap a re-subscribe); without it one session
-        could make the relay send it every frame hundreds of times."""
+        could make the relay send it every frame hundreds of times.
+        ``nudge_interval_s``: the least time between two keyframe nudges of a track's
+        publisher (see the module doc)."""
         self._buffered_bytes = buffered_bytes
         self._on_denied = on_denied
         self._on_frame_hook = on_frame
@@ -175,6 +193,7 @@ class RelayCore:
         self.default_max_latency_s = default_max_latency_s
         self.max_group_cache_bytes = max_group_cache_bytes
         self.max_subscriptions_per_track = max_subscriptions_per_track
+        self.nudge_interval_s = nudge_interval_s
         self._conns: dict[ConnId, _Conn] = {}
         self._owners: dict[str, ConnId] = {}  # broadcast path -> publishing connection
         self._hops: dict[str, int] = {}
@@ -235,7 +254,9 @@ class RelayCore:
                 for upstream, out in list(viewer.outs.items()):
                     if self._lagging(viewer, out, now):
                         self._skip(viewer, upstream)
-                self._check_tails(viewer, now)
+                        self._nudge(track, now)
+                if self._check_tails(viewer, now) and not viewer.outs:
+                    self._nudge(track, now)
         return self._take_touched()
 
     def stats(self, conn_id: ConnId) -> ConnStats | None:
@@ -285,6 +306,12 @@ class RelayCore:
                 for upstream, out in list(viewer.outs.items()):
                     if out.stream_id == event.stream_id:
                         del viewer.outs[upstream]
+        elif isinstance(event, SubscribeAccepted) and event.subscription_id in conn.nudges:
+            # The publisher has seen a new subscriber (and made its keyframe): done.
+            conn.nudges.discard(event.subscription_id)
+            conn.session.unsubscribe(event.subscription_id)
+        elif isinstance(event, SubscribeClosed) and event.subscription_id in conn.nudges:
+            conn.nudges.discard(event.subscription_id)
         elif isinstance(event, SubscribeAccepted):
             track = self._upstream_track(conn, event.subscription_id)
             if track is not None:
@@ -363,6 +390,12 @@ class RelayCore:
             held = sum(1 for viewer_conn, _ in track.viewers if viewer_conn == conn_id)
             if held >= self.max_subscriptions_per_track:
                 conn.stats.subscribes_refused += 1
+                if conn.stats.subscribes_refused > MAX_REFUSED_SUBSCRIBES:
+                    # No player asks this often past the limit: a flood, whose every
+                    # refusal costs the relay the time the honest viewers need.
+                    conn.session.close(ErrorCode.LIMIT_EXCEEDED, "too many refused subscriptions")
+                    self._touched |= self.remove_connection(conn_id)
+                    return
                 conn.session.reject_subscribe(e.request_id, ErrorCode.LIMIT_EXCEEDED)
                 return
         if track is None:
@@ -391,9 +424,10 @@ class RelayCore:
         viewer.accepted = session.accept_subscribe(viewer.request_id)
         self._touched.add(viewer.conn)
         if track.latest is None:
-            return
+            return  # the publisher's first group comes with its subscription's keyframe
         group = track.groups[track.latest]
         if not group.cacheable or (group.done and not group.complete):
+            self._nudge(track, self._clock())
             return  # joins at the next group's start
         out = self._open_out(track, viewer, track.latest, group)
         if out is None:
@@ -491,6 +525,7 @@ class RelayCore:
                 continue
             if self._lagging(viewer, out, now):
                 self._skip(viewer, e.stream_id)
+                self._nudge(track, now)
             else:
                 self._write(viewer, out, e.payload)
         if self._on_frame_hook is not None:
@@ -593,15 +628,31 @@ class RelayCore:
         self._touched.add(viewer.conn)
         # The next GroupOpened gives this viewer a fresh stream from that group's start.
 
-    def _check_tails(self, viewer: _Viewer, now: float) -> None:
-        """Skip a viewer's finished groups when they alone make it lag (between groups,
-        or with a quiet publisher, there is no current group to notice it)."""
-        if not viewer.tails:
+    def _nudge(self, track: _Track, now: float) -> None:
+        """Ask the track's publisher for a keyframe the only way moq-lite can (module doc)."""
+        if track.nudged_at is not None and now - track.nudged_at < self.nudge_interval_s:
             return
+        publisher = self._conns.get(track.publisher)
+        if publisher is None or publisher.session.closed:
+            return
+        track.nudged_at = now
+        broadcast, name = track.key
+        publisher.nudges.add(publisher.session.subscribe(broadcast, name))
+        publisher.stats.keyframe_nudges += 1
+        self._touched.add(track.publisher)
+
+    def _check_tails(self, viewer: _Viewer, now: float) -> bool:
+        """Skip a viewer's finished groups when they alone make it lag (between groups,
+        or with a quiet publisher, there is no current group to notice it); whether it
+        did."""
+        if not viewer.tails:
+            return False
         backlog, stale = self._tails_lagging(viewer, now)
         if stale or backlog > self.max_backlog_bytes:
             self._skip_tails(viewer)
             self._touched.add(viewer.conn)
+            return True
+        return False
 
     def _skip_tails(self, viewer: _Viewer) -> None:
         """Reset the finished groups still queued for a viewer that skips ahead: they are
