@@ -38,9 +38,11 @@ its first keyframe). A step up moves it one step of the benchmark's ladder at a 
 
 **The frame rate** is a knob too (``Setting.rate``, a fraction of the target on
 ``RATE_LADDER``: 30, 20, 15, 10 fps of 30): the game ticks slower, keeping game time,
-so every stage costs that much less CPU. A lower rate is judged against itself (the
-miss, the budgets, the CPU), and a step up tries the next rate up before any better
-picture at the same rate: a rate below the target is a debt, paid back first.
+so every stage costs that much less CPU. It goes down only to a rate the measured one
+is nearer to than to the current (26 of 30 fps stays, ragged, rather than become a
+steady 20: fewer frames is no cure for a few late ones). A lower rate is judged against
+itself (the miss, the budgets, the CPU), and a step up tries the next rate up before any
+better picture at the same rate: a rate below the target is a debt, paid back first.
 
 Degradation preference (WebRTC's ``degradationPreference``) says when the rate goes
 down: ``framerate`` (games) only when the cheapest setting at the full rate still
@@ -502,7 +504,7 @@ class QualityController:
             return self._switch(m, _best(keep), "down", miss)
         preference = self.goal.preference
         if preference == "balanced":
-            slower = self._slower(m, cpu_allowed, here_cpu, same_encode=True)
+            slower = self._slower(m, fps, cpu_allowed, here_cpu, same_encode=True)
             if slower is not None:
                 why = f"{miss}; a lower frame rate before a smaller encoded size"
                 return self._switch(m, slower, "down", why)
@@ -518,7 +520,7 @@ class QualityController:
         ):
             return self._switch(m, cheapest[1], "down", f"{miss}; nothing fits: the cheapest")
         # Nothing cheaper at this frame rate: the rate gives.
-        slower = self._slower(m, cpu_allowed, here_cpu)
+        slower = self._slower(m, fps, cpu_allowed, here_cpu)
         if slower is not None:
             why = f"{miss}; nothing cheaper holds {self._fps_of(current):.3g} fps: a lower rate"
             return self._switch(m, slower, "down", why)
@@ -560,12 +562,25 @@ class QualityController:
         return fitting, cheapest
 
     def _slower(
-        self, m: Measurement, cpu_allowed: float, here_cpu: float, *, same_encode: bool = False
+        self,
+        m: Measurement,
+        fps: float,
+        cpu_allowed: float,
+        here_cpu: float,
+        *,
+        same_encode: bool = False,
     ) -> Setting | None:
         """The best setting at the highest lower frame rate that fits; where none fits at
-        any, the cheapest at the lowest rate if it is clearly cheaper; else None."""
+        any, the cheapest at the lowest rate if it is clearly cheaper; else None. Only
+        rates the measured ``fps`` is closer to than to the current one: a session that
+        shows 26 of 30 fps keeps its 26 rather than hold a steady 20 (it is at its floor)."""
         current = self.state.setting
-        lower = [r for r in self._rates() if r < current.rate - 1e-6]
+        here = self._fps_of(current)
+        lower = [
+            r
+            for r in self._rates()
+            if r < current.rate - 1e-6 and fps < (here + self.goal.target_fps * r) / 2.0
+        ]
         for rate in lower:
             fitting, _ = self._fitting(m, [rate], cpu_allowed)
             if same_encode:
