@@ -245,6 +245,11 @@ def test_the_frame_rate_gives_last_and_comes_back_first() -> None:
     assert c.setting.rate == 1.0, host.log
     ups = [(t, line) for t, _, line in host.log if t >= 60.0 and "quality up" in line]
     assert ups and "fps again" in ups[0][1], host.log
+    # Below the target rate no step up buys picture: the idle cores are the rate's.
+    for _, _, line in host.log:
+        before = line.split(" -> ")[0]
+        if line.startswith("quality up") and " fps" in before:
+            assert "fps again" in line, host.log
 
 
 def test_resolution_preference_lowers_the_rate_instead_of_the_picture() -> None:

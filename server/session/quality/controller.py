@@ -42,7 +42,8 @@ so every stage costs that much less CPU. It goes down only to a rate the measure
 is nearer to than to the current (26 of 30 fps stays, ragged, rather than become a
 steady 20: fewer frames is no cure for a few late ones). A lower rate is judged against
 itself (the miss, the budgets, the CPU), and a step up tries the next rate up before any
-better picture at the same rate: a rate below the target is a debt, paid back first.
+better picture at the same rate: a rate below the target is a debt, paid back first, so
+no step up improves the picture until the rate is back.
 
 Degradation preference (WebRTC's ``degradationPreference``) says when the rate goes
 down: ``framerate`` (games) only when the cheapest setting at the full rate still
@@ -609,6 +610,10 @@ class QualityController:
             reason = f"{self._fps_of(cand):.3g} fps again for {extra:+.2f} cores ({spare_text})"
             self._last_up = (m.now, current)
             return self._switch(m, cand, "up", reason)
+        if any(r > current.rate + 1e-6 for r in self._rates()):
+            # Below the target rate the idle cores are kept for the rate: a better picture
+            # now would take what the next rate up needs (here, or in another session).
+            return None
         budget = 1000.0 / self._fps_of(current)
         best: tuple[float, Setting, float] | None = None
         for cand in self._candidates():
