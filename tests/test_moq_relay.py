@@ -56,6 +56,19 @@ def setup(viewers: int, **options: Any) -> tuple[RelayNet, MoqSession, list[MoqS
     return net, publisher, sessions, requests["video"]
 
 
+def one_viewer(max_latency_ms: int) -> tuple[RelayNet, MoqSession, MoqSession, int]:
+    """A publisher of `game` and one viewer `v` of its `video` with a max latency; returns
+    the publisher's request id for it."""
+    net = RelayNet()
+    publisher = net.connect("pub")
+    publisher.publish("game")
+    net.pump()
+    viewer = net.connect("v")
+    viewer.subscribe("game", "video", max_latency_ms=max_latency_ms)
+    net.pump()
+    return net, publisher, viewer, serve(net, publisher)["video"]
+
+
 def send_group(publisher: MoqSession, request: int, sequence: int, payloads: list[bytes]) -> int:
     stream = publisher.open_group(request, sequence)
     assert stream is not None
@@ -125,14 +138,7 @@ def test_viewer_that_never_reads_is_skipped_while_the_other_gets_everything() ->
 
 
 def test_viewer_past_its_max_latency_is_skipped_on_poll() -> None:
-    net = RelayNet()
-    publisher = net.connect("pub")
-    publisher.publish("game")
-    net.pump()
-    viewer = net.connect("v")
-    viewer.subscribe("game", "video", max_latency_ms=100)
-    net.pump()
-    request = serve(net, publisher)["video"]
+    net, publisher, viewer, request = one_viewer(max_latency_ms=100)
     net.pipes["v"].hold_to_client = True
     send_group(publisher, request, 0, [b"k"])
     net.pump()
@@ -150,14 +156,7 @@ def test_a_skipped_viewer_nudges_the_publisher_for_a_keyframe_at_most_once_a_sec
     """moq-lite cannot ask for a keyframe: the relay subscribes once more (our publisher
     starts a new subscriber at a keyframe) and cancels that as soon as it is accepted;
     the skipped viewer joins the group the keyframe opens, instead of waiting seconds."""
-    net = RelayNet()
-    publisher = net.connect("pub")
-    publisher.publish("game")
-    net.pump()
-    viewer = net.connect("v")
-    viewer.subscribe("game", "video", max_latency_ms=100)
-    net.pump()
-    request = serve(net, publisher)["video"]
+    net, publisher, viewer, request = one_viewer(max_latency_ms=100)
     net.pipes["v"].hold_to_client = True
     stream = send_group(publisher, request, 0, [b"k0"])
     net.pump()
@@ -203,14 +202,7 @@ def test_finished_groups_that_went_stale_are_skipped_too() -> None:
     """Groups shorter than the max latency finish before any of their frames is old:
     a viewer that stopped reading must still be skipped ahead (its finished groups reset)
     instead of being handed every stale short group, one after another."""
-    net = RelayNet()
-    publisher = net.connect("pub")
-    publisher.publish("game")
-    net.pump()
-    viewer = net.connect("v")
-    viewer.subscribe("game", "video", max_latency_ms=100)
-    net.pump()
-    request = serve(net, publisher)["video"]
+    net, publisher, _viewer, request = one_viewer(max_latency_ms=100)
     net.pipes["v"].hold_to_client = True
     for sequence in range(5):  # 5 groups of 2 frames, 40 ms apart: each 40 ms long
         net.now = sequence * 0.04

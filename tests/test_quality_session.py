@@ -280,17 +280,16 @@ def test_a_served_session_under_auto_follows_its_goal_end_to_end() -> None:
         # A person asks 10 of the configured 15 fps: the game ticks slower, the session
         # publishes at that rate (a loaded machine only publishes less), and says so.
         from server.serve.control_client import request_control
-        from server.session.session_control import SessionControl
+        from server.session.session_control import SessionControl, StatusRecord
 
         broadcast = row["broadcast"]
-        record = asyncio.run(
-            request_control(
-                served.player_url(broadcast),
-                broadcast,
-                SessionControl(frame_rate=10.0),
-                timeout_s=30,
-            )
-        )
+
+        def ask_frame_rate(fps: float) -> StatusRecord:
+            control = SessionControl(frame_rate=fps)
+            url = served.player_url(broadcast)
+            return asyncio.run(request_control(url, broadcast, control, timeout_s=30))
+
+        record = ask_frame_rate(10.0)
         assert record.last_control is not None and record.last_control.accepted, record
         rows = served.wait(
             lambda rows: rows[0]["frame_rate"] == 10.0 and 0 < rows[0]["fps"] <= 12.0,
@@ -300,14 +299,7 @@ def test_a_served_session_under_auto_follows_its_goal_end_to_end() -> None:
         frames = rows[0]["frames"]
         served.wait(lambda rows: rows[0]["frames"] > frames + 10, 30, "frames at 10 fps")
         # Above the configured rate: refused with the reason, nothing changes.
-        record = asyncio.run(
-            request_control(
-                served.player_url(broadcast),
-                broadcast,
-                SessionControl(frame_rate=30.0),
-                timeout_s=30,
-            )
-        )
+        record = ask_frame_rate(30.0)
         assert record.last_control is not None and not record.last_control.accepted
         assert "above the session's configured 15 fps" in (record.last_control.reason or "")
         assert record.frame_rate == 10.0

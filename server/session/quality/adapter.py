@@ -74,6 +74,8 @@ class StreamSettingsLike(Protocol):
 
 
 CHECK_INTERVAL_S = 0.5
+# Frame rates closer than this are one rate (the stream state holds it rounded).
+SAME_RATE_FPS = 0.01
 AUTO_SOURCE = "quality-auto"
 
 
@@ -127,8 +129,6 @@ class SessionQuality:
         self._state = stream_state
         self._metrics = QualityMetrics(registry) if registry is not None else None
         self.decisions: list[Decision] = []
-        # The frame rate the game runs at (the configured one until a request changes it).
-        self._frame_rate = controller.goal.target_fps if controller is not None else None
         self._pending: dict[int, Decision] = {}  # our requests' seq -> what they asked
         self._sending: Decision | None = None
         self._publish()
@@ -154,8 +154,6 @@ class SessionQuality:
             return
         req = result.requested
         frame_rate = req.get("frame_rate")
-        if isinstance(frame_rate, int | float):
-            self._frame_rate = float(frame_rate)
         self._set_goal(req, result.source)
         mode = req.get("quality")
         if mode == "auto":
@@ -191,9 +189,6 @@ class SessionQuality:
         self._publish()
 
     def _own_outcome(self, result: ControlResult) -> None:
-        frame_rate = result.requested.get("frame_rate")
-        if result.accepted and isinstance(frame_rate, int | float):
-            self._frame_rate = float(frame_rate)
         decision = self._pending.pop(result.seq, None)
         if decision is None and self._sending is not None:
             decision, self._sending = self._sending, None
@@ -233,8 +228,17 @@ class SessionQuality:
         off the new target's ladder is conformed at the next check)."""
         assert self.controller is not None
         wanted = self.controller.goal.target_fps * self.controller.setting.rate
-        if self._frame_rate is None or abs(wanted - self._frame_rate) > 1e-6:
+        running = self._running_frame_rate()
+        if running is None or abs(wanted - running) > SAME_RATE_FPS:
             self.router.apply_setting(AUTO_SOURCE, frame_rate=wanted)
+
+    def _running_frame_rate(self) -> float | None:
+        """The frame rate the game runs at: what the session last set it to (its stream
+        state, written for every accepted request), the goal's target before that."""
+        rate = self._state.get("frame_rate")
+        if isinstance(rate, int | float) and not isinstance(rate, bool):
+            return float(rate)
+        return None if self.controller is None else self.controller.goal.target_fps
 
     def step(self, now: float) -> Decision | None:
         if self.controller is None or not self.enabled:
@@ -282,7 +286,8 @@ class SessionQuality:
     def _send(self, new: Setting, old: Setting) -> int | None:
         assert self.controller is not None
         frame_rate = self.controller.goal.target_fps * new.rate
-        if self._frame_rate is not None and abs(frame_rate - self._frame_rate) < 1e-6:
+        running = self._running_frame_rate()
+        if running is not None and abs(frame_rate - running) < SAME_RATE_FPS:
             frame_rate_asked: float | None = None
         else:
             frame_rate_asked = frame_rate
@@ -317,8 +322,9 @@ class SessionQuality:
             self._metrics.scale.set(st.setting.scale)
             self._metrics.encode_scale.set(st.setting.encode_scale)
             self._metrics.switches.set(st.switches)
-            if self._frame_rate is not None:
-                self._metrics.frame_rate.set(self._frame_rate)
+            running = self._running_frame_rate()
+            if running is not None:
+                self._metrics.frame_rate.set(running)
             if st.headroom_cores is not None:
                 self._metrics.headroom.set(st.headroom_cores)
 
