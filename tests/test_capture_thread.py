@@ -50,6 +50,7 @@ def test_frames_from_before_the_clock_origin_are_not_encoded_twice_at_pts_zero(
             assert lease is not None
             lease.views(SIZE.width, SIZE.height)["color"][...] = np.uint8(40 * i)
             lease.header["frame_id"] = i
+            lease.header["game_time_us"] = 1_000_000 + i
             lease.header["stamps"][Stage.RENDER_START] = (origin + ms * 1_000_000, 1)
             lease.commit(stamp_stage=Stage.RING_U_READY)
             # One frame at a time: the capture reads only the newest.
@@ -60,5 +61,7 @@ def test_frames_from_before_the_clock_origin_are_not_encoded_twice_at_pts_zero(
         ring.close()
     assert capture.stats.errors == 0
     assert [c.meta.frame_id for c in delivered] == [0, 2, 3, 5]
+    # The game time rides along to the timing record (see test_session_broadcast).
+    assert [c.meta.game_time_us for c in delivered] == [1_000_000, 1_000_002, 1_000_003, 1_000_005]
     assert [c.encoded.pts_us for c in delivered] == [0, 10_000, 43_000, 76_000]
     assert capture.stats.not_after_last == 2

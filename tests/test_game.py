@@ -111,6 +111,26 @@ def test_a_lower_frame_rate_keeps_the_pace_of_game_time(ring_name: str) -> None:
     ring.close()
 
 
+def test_each_frame_carries_its_game_time_across_a_frame_rate_change(ring_name: str) -> None:
+    """The header says when in game time a frame was rendered: after a rate change the
+    frame id alone no longer tells it, and a benchmark re-renders the ground truth from it."""
+    ring = create_render_ring(ring_name, SIZE)
+    loop = GameLoop(Renderer("default", SIZE), ring, fps=30.0)
+    times = []
+    for i in range(6):
+        if i == 3:
+            loop.request_frame_rate(15.0)
+        assert loop.step(i)
+        lease = ring.acquire_read(1.0)
+        assert lease is not None
+        with lease:
+            times.append(render_frame_of(lease).meta.game_time_us)
+    # 0, 1/30, 2/30, then frame 3 keeps its time (3/30) and the period becomes 1/15.
+    assert times == [0, 33_333, 66_667, 100_000, 166_667, 233_333]
+    assert times[3:] == [round(loop.game_time(i) * 1e6) for i in range(3, 6)]
+    ring.close()
+
+
 def test_the_loop_ticks_at_the_rate_it_is_asked(ring_name: str) -> None:
     ring = create_render_ring(ring_name, SIZE)
     loop = GameLoop(Renderer("static", SIZE), ring, fps=100.0)

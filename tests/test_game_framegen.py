@@ -112,6 +112,7 @@ class Seen:
     view: np.ndarray
     prev_view: np.ndarray
     input_seq: int
+    game_time_us: int
     stamps: np.ndarray
     mask_pixels: int
 
@@ -125,7 +126,8 @@ def step_and_read(loop: GameLoop, ring: FrameRing, index: int) -> Seen:
         cam = f.meta.camera
         return Seen(
             f.meta.frame_id, f.meta.flags, f.size, cam.view.copy(), cam.prev_view.copy(),
-            f.meta.input_seq, f.meta.stamps.copy(), int(f.dynamic_mask.sum()),
+            f.meta.input_seq, f.meta.game_time_us, f.meta.stamps.copy(),
+            int(f.dynamic_mask.sum()),
         )  # fmt: skip
 
 
@@ -144,6 +146,9 @@ def test_full_and_dynamic_ticks_alternate_with_the_right_cameras(ring_name: str)
         seen.append(step_and_read(loop, ring, i))
     assert [predicted(s) for s in seen] == [False, True] * 4
     assert [s.frame_id for s in seen] == list(range(8))
+    # Dynamic-only ticks carry their own game time, not their base's: the worker's
+    # prediction stands for that instant.
+    assert [s.game_time_us for s in seen] == [round(i / 60.0 * 1e6) for i in range(8)]
     assert seen[0].flags & FrameFlags.RESET
     for i in range(1, 8, 2):
         dyn, last_full = seen[i], seen[i - 1]

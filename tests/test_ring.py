@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import multiprocessing as mp
 import os
 import signal
@@ -17,6 +18,7 @@ from server.frames.ring import (
     MAGIC,
     RENDER_PLANES,
     RING_HEADER_SIZE,
+    SLOT_HEADER,
     SLOT_HEADER_SIZE,
     FrameRing,
     RingError,
@@ -67,15 +69,31 @@ def test_layout_is_as_documented(ring_name: str) -> None:
     assert lease is not None
     views = lease.views(320, 180)
     views["depth"][...] = np.arange(320 * 180, dtype=np.float32).reshape(180, 320)
+    lease.header["input_seq"] = 77
+    lease.header["game_time_us"] = -(2**40) - 3  # i64: the sign and high bits survive
     lease.commit()
     raw = Path(f"/dev/shm/{ring_name}").read_bytes()
     slot0 = RING_HEADER_SIZE
     assert int.from_bytes(raw[slot0 : slot0 + 4], "little") == SlotState.READY
     assert int.from_bytes(raw[slot0 + 8 : slot0 + 16], "little") == 1  # seq
     assert int.from_bytes(raw[slot0 + 16 : slot0 + 20], "little") == 320
+    assert int.from_bytes(raw[slot0 + 544 : slot0 + 552], "little", signed=True) == 77
+    assert int.from_bytes(raw[slot0 + 552 : slot0 + 560], "little", signed=True) == -(2**40) - 3
     plane = np.frombuffer(raw, np.float32, 320 * 180, slot0 + depth_off)
     assert plane[12345] == 12345.0
     ring.close()
+
+
+def test_slot_header_fields_neither_overlap_nor_overflow() -> None:
+    """A field added to the header (or a stage added to the stamps) must not run into
+    the next one: numpy accepts overlapping fields silently."""
+    fields = SLOT_HEADER.fields
+    assert fields is not None
+    spans = sorted((off, off + dt.itemsize, name) for name, (dt, off, *_) in fields.items())
+    for (_, end, name), (start, _, nxt) in itertools.pairwise(spans):
+        assert end <= start, f"{name} runs into {nxt}"
+    assert spans[-1][1] <= SLOT_HEADER_SIZE
+    assert spans[-1][2] == "game_time_us" and spans[-1][0] == 552
 
 
 def test_round_trip_zero_copy_read_only(ring_name: str) -> None:
@@ -87,7 +105,14 @@ def test_round_trip_zero_copy_read_only(ring_name: str) -> None:
     views["color"][...] = 200
     views["depth"][...] = 0.5
     cam = Camera.identity()
-    meta = FrameMeta(frame_id=42, camera=cam, jitter=(0.25, -0.125), flags=FrameFlags.RESET)
+    meta = FrameMeta(
+        frame_id=42,
+        camera=cam,
+        jitter=(0.25, -0.125),
+        flags=FrameFlags.RESET,
+        input_seq=5,
+        game_time_us=3_600_000_123,  # an hour in: beyond 32 bits
+    )
     meta.stamps[Stage.RENDER_START] = (111, 222)
     write_meta(lease.header, meta)
     seq = lease.commit(stamp_stage=Stage.RING_R_READY)
@@ -99,6 +124,7 @@ def test_round_trip_zero_copy_read_only(ring_name: str) -> None:
     assert frame.size == Size(63, 47)
     assert frame.meta.frame_id == 42 and frame.meta.jitter == (0.25, -0.125)
     assert frame.meta.flags == FrameFlags.RESET
+    assert frame.meta.input_seq == 5 and frame.meta.game_time_us == 3_600_000_123
     assert tuple(frame.meta.stamps[Stage.RENDER_START]) == (111, 222)
     assert frame.meta.stamps[Stage.RING_R_READY, 0] > 0
     assert (frame.color == 200).all() and (frame.depth == 0.5).all()

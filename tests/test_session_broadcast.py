@@ -50,8 +50,12 @@ class Harness:
             if isinstance(e, ev.FrameReceived) and e.subscription_id == subscription
         ]
 
-    def publish(self, frame_id: int, keyframe: bool) -> FrameMeta:
-        meta = FrameMeta(frame_id, Camera.identity(), input_seq=frame_id * 10)
+    def publish(self, frame_id: int, keyframe: bool, game_time_us: int | None = None) -> FrameMeta:
+        if game_time_us is None:
+            game_time_us = frame_id * 50_000
+        meta = FrameMeta(
+            frame_id, Camera.identity(), input_seq=frame_id * 10, game_time_us=game_time_us
+        )
         stamp(meta.stamps, Stage.RENDER_START)
         stamp(meta.stamps, Stage.RENDER_END)
         encoded = EncodedFrame(
@@ -88,7 +92,8 @@ def test_video_groups_start_at_keyframes_and_timing_follows() -> None:
     assert h.keyframe_requests == 2  # each new subscriber asks for a keyframe
     h.publish(1, keyframe=False)  # mid-group: nothing until a keyframe, never a broken group
     assert h.frames(video) == []
-    metas = [h.publish(2, keyframe=True), h.publish(3, keyframe=False)]
+    # Frame 3 comes from a source without a game clock: game time unknown (0).
+    metas = [h.publish(2, keyframe=True), h.publish(3, keyframe=False, game_time_us=0)]
     h.publish(4, keyframe=True)
     assert h.frames(video) == [(0, b"frag2"), (0, b"frag3"), (1, b"frag4")]
     records = [json.loads(p) for _, p in h.frames(timing)]
@@ -97,6 +102,8 @@ def test_video_groups_start_at_keyframes_and_timing_follows() -> None:
     assert [r["pts_us"] for r in records] == [2000, 3000, 4000]
     assert records[0]["keyframe"] and not records[1]["keyframe"]
     assert records[1]["input_seq"] == 30
+    assert records[0]["game_time_us"] == 100_000 and records[2]["game_time_us"] == 200_000
+    assert "game_time_us" not in records[1]  # unknown: left out, not sent as 0
     assert records[0]["upscaler"] == "temporal" and records[0]["scale"] == 2.0
     stamps = records[0]["stamps"]
     assert stamps["render_start"] <= stamps["render_end"] <= stamps["publish"]

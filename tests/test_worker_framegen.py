@@ -67,6 +67,7 @@ def ticks(scene: str, count: int) -> tuple[list[RenderFrame], list[RenderFrame]]
         t = i / FPS
         prev = last_full_t if i % 2 == 0 else None
         frame = renderer.render(i, t, RenderTargets.allocate(RENDER), prev_t=prev)
+        frame.meta.game_time_us = round(t * 1e6)  # what GameLoop.step stamps
         truth.append(frame)
         if i % 2 == 0:
             sent.append(frame)
@@ -119,6 +120,10 @@ def test_predicted_ticks_are_presented_flagged_and_close_to_the_render(pipe: Pip
     assert [m.frame_id for m, _ in shown] == list(range(8))
     predicted = [bool(m.flags & FrameFlags.PREDICTED) for m, _ in shown]
     assert predicted == [i % 2 == 1 for i in range(8)]
+    # Rendered and predicted frames reach ring U with the game time of the tick they
+    # stand for (a benchmark re-renders their ground truth from it).
+    assert [m.game_time_us for m, _ in shown] == [round(i / FPS * 1e6) for i in range(8)]
+    assert shown[5][0].game_time_us == 166_667
     reference = UpscalerHost("bilinear", DISPLAY)
     for i in range(1, 8, 2):
         want = to_uint8(reference.upscale(truth[i]))

@@ -14,6 +14,8 @@ export interface TimingRecord {
 	predicted?: boolean;
 	/** Last input seq the game applied before rendering this frame. */
 	input_seq?: number;
+	/** Game time the frame was rendered at, microseconds (absent when 0: unknown). */
+	game_time_us?: number;
 	/** What the server runs now (player controls follow it). */
 	upscaler?: string;
 	scale?: number;

@@ -108,6 +108,13 @@ class FrameMeta:
     stamps: I64Array = field(default_factory=new_stamps)
     # Last player input applied before this frame was rendered (0 = none).
     input_seq: int = 0
+    # Game time the frame was rendered at, in microseconds (0 = unknown: a source
+    # without a game clock, such as the load test's synthetic frames). With the frame
+    # rate changing at run time the frame id alone no longer tells it; a benchmark
+    # re-renders a received frame's ground truth from it. The game loop stamps every
+    # tick (an X11 capture gets the loop's clock, which the application does not
+    # follow); a predicted frame carries the time of the tick it stands for.
+    game_time_us: int = 0
 
 
 @dataclass

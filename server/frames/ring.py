@@ -61,6 +61,10 @@ Slot ``i`` starts at ``slots_offset + i * slot_stride``. Slot header, 1024 bytes
     544  i64       input_seq: sequence number of the last player input the game applied
                    before rendering this frame (0 = none); lets a client measure
                    input-to-photon latency
+    552  i64       game_time_us: game time the frame was rendered at, microseconds
+                   (0 = unknown: a source without a game clock); a predicted frame
+                   keeps its tick's time. Lets a benchmark re-render the ground
+                   truth of a received frame
 
 Planes follow at their table offsets. Each holds ``height * width * channels``
 elements of its dtype, packed row-major (no row padding) for the slot's own
@@ -170,12 +174,13 @@ SLOT_HEADER = np.dtype(
         "names": [
             "state", "owner_pid", "seq", "width", "height", "frame_id", "flags", "jitter",
             "near", "far", "fov_y_deg", "checksum", "matrices", "stamps", "input_seq",
+            "game_time_us",
         ],
         "formats": [
             "<u4", "<i4", "<u8", "<u4", "<u4", "<i8", "<u4", ("<f4", (2,)), "<f4", "<f4", "<f4",
-            "<u8", ("<f4", (4, 4, 4)), ("<i8", (STAGE_COUNT, 2)), "<i8",
+            "<u8", ("<f4", (4, 4, 4)), ("<i8", (STAGE_COUNT, 2)), "<i8", "<i8",
         ],
-        "offsets": [0, 4, 8, 16, 20, 24, 32, 36, 44, 48, 52, 56, 64, 320, 544],
+        "offsets": [0, 4, 8, 16, 20, 24, 32, 36, 44, 48, 52, 56, 64, 320, 544, 552],
         "itemsize": SLOT_HEADER_SIZE,
     }
 )  # fmt: skip

@@ -42,6 +42,7 @@ def write_meta(header: SlotHeader, meta: FrameMeta) -> None:
     mats[3] = cam.prev_proj
     header["stamps"] = meta.stamps
     header["input_seq"] = meta.input_seq
+    header["game_time_us"] = meta.game_time_us
 
 
 def read_meta(header: SlotHeader) -> FrameMeta:
@@ -64,6 +65,7 @@ def read_meta(header: SlotHeader) -> FrameMeta:
         flags=FrameFlags(int(header["flags"]) & int(KNOWN_FLAGS)),
         stamps=np.array(header["stamps"], dtype=np.int64),
         input_seq=int(header["input_seq"]),
+        game_time_us=int(header["game_time_us"]),
     )
 
 

@@ -241,6 +241,9 @@ class GameLoop:
                 return False
             meta = frame.meta
             meta.input_seq = self.input_seq
+            # The time this tick drew (the frame id alone does not tell it once the
+            # frame rate has changed); a predicted tick carries its own time too.
+            meta.game_time_us = round(t * 1e6)
             meta.stamps[Stage.RENDER_START] = render_start
             stamp(meta.stamps, Stage.RENDER_END)
             report = self.on_dynamic_time if dynamic_only else self.on_render_time

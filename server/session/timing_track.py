@@ -6,6 +6,13 @@ stages the frame reached. The browser and the load test add their own stages
 (``client_receive``...) and compute every span the same way the server does.
 ``pts_us`` ties the record to the video frame (the CMAF decode time); ``n``
 counts published frames so a viewer can tell what it lost.
+
+``game_time_us`` is the game time the frame was rendered at, in microseconds
+(``FrameMeta.game_time_us``; a predicted frame has its tick's time), so a benchmark
+can re-render the ground truth of a received frame after the run: the frame id
+alone does not tell the time once the frame rate has changed. It is left out when
+0: unknown (a source without a game clock, the load test's synthetic frames), and
+hence also for the one frame rendered at game time 0 itself.
 """
 
 from __future__ import annotations
@@ -29,7 +36,7 @@ def timing_record(meta: FrameMeta, *, n: int, pts_us: int, keyframe: bool) -> di
         wall_ns = int(meta.stamps[stage, 1])
         if wall_ns:
             stamps[stage.label] = wall_ns // 1000
-    return {
+    record: dict[str, Any] = {
         "frame": meta.frame_id,
         "n": n,
         "pts_us": pts_us,
@@ -38,6 +45,9 @@ def timing_record(meta: FrameMeta, *, n: int, pts_us: int, keyframe: bool) -> di
         "input_seq": meta.input_seq,
         "stamps": stamps,
     }
+    if meta.game_time_us:
+        record["game_time_us"] = meta.game_time_us
+    return record
 
 
 def audio_timing_record(captured: CapturedAudio, *, publish_us: int) -> dict[str, Any]:
