@@ -49,7 +49,7 @@ from server.eval.real_content_sources import held_out_images
 from server.frames.frame import RenderFrame, Size
 from server.game.render.mip_bias import MIP_BIAS_HELP, parse_mip_bias
 from server.game.render.renderer import Renderer, RenderTargets
-from server.game.render.scenes import SCENE_NAMES, make_scene, parse_scene_list
+from server.game.render.scenes import DEFAULT_SCENE_NAMES, make_scene, parse_scene_list
 from server.ops.cpu_threads import set_cpu_threads
 from server.ops.progress import elapsed_and_left, progress
 from upscalers import metrics
@@ -80,7 +80,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--table", type=Path, default=None, help="Markdown table path")
     parser.add_argument(
         "--scenes",
-        default=",".join(SCENE_NAMES),
+        default=",".join(DEFAULT_SCENE_NAMES),
         help="comma-separated game scenes, or 'none' (with --real-content: photographs only)",
     )
     parser.add_argument("--scales", default="1.5,2,3", help="display/render, comma-separated")

@@ -32,7 +32,7 @@ import numpy.typing as npt
 
 from server.frames.frame import Size
 from server.game.render.renderer import Renderer
-from server.game.render.scenes import SCENE_NAMES
+from server.game.render.scenes import DEFAULT_SCENE_NAMES, SCENE_NAMES
 from server.ops.progress import elapsed_and_left
 from server.ops.progress import progress as report_progress
 
@@ -49,7 +49,7 @@ class DatasetSpec:
     scale: int = 2
     supersample: int = 3
     seed: int = 0
-    scenes: tuple[str, ...] = SCENE_NAMES
+    scenes: tuple[str, ...] = DEFAULT_SCENE_NAMES
     # Texture LOD bias of the renders (the ground truth picks its own mips at display size);
     # 0 in the key's absence: datasets cached before the field were rendered with it.
     texture_lod_bias: float = 0.0

@@ -106,8 +106,9 @@ def _scene(
     objs: list[SceneObject],
     camera: Callable[[float], CameraPose],
     cut_times: tuple[float, ...] = (),
+    cut_period: float | None = None,
 ) -> Scene:
-    return Scene(name, tuple(objs), MATERIALS, camera, cut_times=cut_times)
+    return Scene(name, tuple(objs), MATERIALS, camera, cut_times=cut_times, cut_period=cut_period)
 
 
 def static(seed: int) -> Scene:
@@ -164,6 +165,115 @@ def thin_detail(seed: int) -> Scene:
     )
 
 
+# The adaptive-quality benchmark's script: a 60 s cycle of 12 s segments, each one
+# imitating a scene above, that repeats forever. Every segment starts with a hard cut
+# (the wrap back to 0 at 60, 120, ... too) and the fast yaw also cuts to another place
+# every 4 s. Cameras and moving objects read the time within the cycle, and each
+# camera the time since its segment began, so every cycle shows the same pictures.
+SCHEDULE_CYCLE = 60.0
+SCHEDULE_SEGMENT = 12.0
+SCHEDULE_HOP = 4.0  # the fast-yaw segment's cut to another place
+# What each segment imitates, in order.
+SCHEDULE_SEGMENTS: tuple[str, ...] = (
+    "static",
+    "slow_pan",
+    "fast_yaw",
+    "moving_objects",
+    "thin_detail",
+)
+SCHEDULE_CUTS: tuple[float, ...] = (12.0, 24.0, 28.0, 32.0, 36.0, 48.0, 60.0)
+# The fast yaw's places: (position, yaw at the hop's start, pitch).
+_FAST_PLACES: tuple[tuple[tuple[float, float, float], float, float], ...] = (
+    ((0.0, 1.7, 2.0), 0.0, -3.0),  # fast_yaw's own
+    ((-2.0, 2.2, -20.0), 90.0, -4.0),  # behind the sign, between the buildings
+    ((10.0, 2.5, -12.0), 200.0, -6.0),  # right of the fence
+)
+# Where the crossing objects run: behind and left of the still and panning camera,
+# and outside the thin-detail drift's view, so only their own segment (and the fast
+# yaw's sweep) sees them.
+_CROSSING_AT = (-16.0, 0.0, 20.0)
+
+
+def schedule_segment(t: float) -> str:
+    """The scene the schedule's segment at ``t`` imitates."""
+    return SCHEDULE_SEGMENTS[_schedule_phase(t)[0]]
+
+
+def scene_segments(name: str) -> Callable[[float], str] | None:
+    """For a scripted scene, what its segment at game time t imitates; None for the rest."""
+    return schedule_segment if name == "schedule" else None
+
+
+def _schedule_phase(t: float) -> tuple[int, float]:
+    """(segment index, seconds since the segment began) at ``t``."""
+    s = t % SCHEDULE_CYCLE
+    i = min(int(s // SCHEDULE_SEGMENT), len(SCHEDULE_SEGMENTS) - 1)
+    return i, s - i * SCHEDULE_SEGMENT
+
+
+def _looping_crossers() -> list[SceneObject]:
+    """moving_objects' crossers at ``_CROSSING_AT``, on rates that fit a whole number
+    of times into the cycle: they never stop, never jump, and repeat every cycle."""
+    ox, _, oz = _CROSSING_AT
+    w = 2.0 * math.pi / SCHEDULE_CYCLE  # one turn a cycle
+
+    def cyc(t: float) -> float:
+        return t % SCHEDULE_CYCLE
+
+    return [
+        _mover(
+            Box((0.6, 0.6, 0.6)),
+            "checker",
+            lambda t: Pose((ox + 3.5 * math.sin(9 * w * cyc(t)), 0.6, oz - 6.0), 60.0 * cyc(t)),
+        ),
+        _mover(
+            Sphere(0.7),
+            "stripes",
+            lambda t: Pose((ox + 4.0 * math.cos(6 * w * cyc(t)), 0.7, oz - 10.0), -90.0 * cyc(t)),
+        ),
+        _mover(
+            Box((0.4, 0.9, 0.4)),
+            "astronaut",
+            lambda t: Pose(
+                (
+                    ox - 2.0 + 1.5 * math.sin(12 * w * cyc(t)),
+                    0.9 + 0.4 * abs(math.sin(19 * w * cyc(t))),
+                    oz - 4.0,
+                ),
+                30.0 * cyc(t),
+            ),
+        ),
+    ]
+
+
+def schedule(seed: int) -> Scene:
+    objs = _world(seed)
+    objs += [
+        SceneObject.still(Quad(6.0, 3.0), "page_raw", (-5.5, 1.0, -7.0), 35.0),
+        SceneObject.still(Quad(2.6, 1.0), "text_raw", (1.2, 0.2, -6.0), -20.0),
+    ]
+    objs += _looping_crossers()
+    ox, _, oz = _CROSSING_AT
+    still = CameraPose((0.0, 1.7, 6.0), 0.0, -6.0)
+    watch = CameraPose((ox, 1.8, oz + 4.0), 0.0, -8.0)
+
+    def camera(t: float) -> CameraPose:
+        i, u = _schedule_phase(t)
+        if i == 0:
+            return still
+        if i == 1:
+            return CameraPose((0.0, 1.7, 6.0), 15.0 - 10.0 * u, -5.0)
+        if i == 2:
+            hop = min(int(u // SCHEDULE_HOP), len(_FAST_PLACES) - 1)
+            pos, yaw, pitch = _FAST_PLACES[hop]
+            return CameraPose(pos, yaw - 200.0 * (u - hop * SCHEDULE_HOP), pitch)
+        if i == 3:
+            return watch
+        return CameraPose((1.0 + 0.3 * u, 1.6, 1.0), 8.0 + 1.0 * u, -3.0)
+
+    return _scene("schedule", objs, camera, SCHEDULE_CUTS, SCHEDULE_CYCLE)
+
+
 def default(seed: int) -> Scene:
     def camera(t: float) -> CameraPose:
         a = math.radians(-6.0 * t)  # orbit about the sign at 6 deg/s
@@ -180,6 +290,9 @@ class SceneInfo:
     camera_motion: bool
     moving_objects: bool
     description: str
+    # Whether "all" and the default scene lists take it: False for a script that
+    # replays the others (it would only repeat them, and change every default run).
+    in_all: bool = True
 
 
 SCENES: dict[str, SceneInfo] = {
@@ -193,14 +306,28 @@ SCENES: dict[str, SceneInfo] = {
         thin_detail, True, False, "fence bars and text that alias, slow drift"
     ),
     "default": SceneInfo(default, True, True, "slow orbit over the world with moving objects"),
+    "schedule": SceneInfo(
+        schedule,
+        True,
+        True,
+        "60 s benchmark loop of 12 s segments: still, slow pan, fast yaw cutting to another"
+        " place every 4 s, crossing objects, thin detail; a hard cut starts each",
+        in_all=False,
+    ),
 }
+# Every scene a name can pick.
 SCENE_NAMES: tuple[str, ...] = tuple(SCENES)
+# What "all" means, and the evaluation's and the training set's default list.
+DEFAULT_SCENE_NAMES: tuple[str, ...] = tuple(n for n, info in SCENES.items() if info.in_all)
 
 
 def parse_scene_list(text: str) -> list[str]:
-    """Scene names from "a,b,c" or "all"; SystemExit naming the allowed ones otherwise."""
+    """Scene names from "a,b,c" or "all" (``DEFAULT_SCENE_NAMES``: without the schedule);
+    SystemExit naming the allowed ones otherwise."""
     scenes = (
-        list(SCENE_NAMES) if text == "all" else [s.strip() for s in text.split(",") if s.strip()]
+        list(DEFAULT_SCENE_NAMES)
+        if text == "all"
+        else [s.strip() for s in text.split(",") if s.strip()]
     )
     unknown = [s for s in scenes if s not in SCENE_NAMES]
     if unknown or not scenes:
