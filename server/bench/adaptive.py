@@ -15,9 +15,14 @@ session runs. Per session the report has:
   how long after it ended the setting stepped up again;
 - the settings it ran and for how long, the switches (each is one log line of the
   session, counted from serve's log), and the picture the speed-against-error table
-  expects of them, weighted by time. That last figure is the table's (PSNR against the
-  game's ground truth, server/session/quality/figures.json), not a measurement of the
-  decoded stream.
+  expects of them, weighted by time (the table's figure, a model);
+- the picture the viewer saw, measured: PSNR and SSIM of the decoded stream against
+  the game's ground truth at display size, sampled on a game-time grid with a missing
+  frame scored as the older one still on screen, over the whole window and per
+  segment of the scene schedule; and how long frames took from render to the viewer
+  (server/bench/adaptive_picture.py). The stream is kept compressed during the case
+  and decoded and scored after serve has stopped, so scoring takes no CPU from the
+  sessions measured.
 """
 
 from __future__ import annotations
@@ -33,12 +38,26 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO
 
+from server.bench.adaptive_picture import (
+    DecodeCounts,
+    GroundTruth,
+    RecordedStream,
+    StreamRecorder,
+    decoded_frames,
+    game_time_grid,
+    percentile,
+    render_to_receive_ms,
+    score_stream,
+)
 from server.bench.report import BenchReport
 from server.bench.serve import ROOT, _poll_sessions, watch_every_session
+from server.game.render.scenes import SCHEDULE_SEGMENTS, scene_segments
+from server.media.cmaf_read import parse_fragment, track_defaults, track_timescales
 from server.ops.process import stop_child
 from server.quic.moq_link import MoqLink
 from server.session.quality.figures import load_figures
@@ -62,13 +81,33 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--display-size", default="1280x720")
     parser.add_argument("--fps", type=float, default=30.0)
-    parser.add_argument("--duration", type=float, default=45.0, help="seconds measured per case")
+    parser.add_argument(
+        "--duration", type=float, default=60.0,
+        help="seconds measured per case (default: one whole cycle of the schedule scene)",
+    )  # fmt: skip
     parser.add_argument("--warmup", type=float, default=8.0, help="seconds after all are up")
     parser.add_argument(
         "--hog", action=argparse.BooleanOptionalAction, default=True,
         help="a busy loop takes one core for the middle third of each case (default: on)",
     )  # fmt: skip
     parser.add_argument("--port", type=int, default=4470, help="relay port (HTTP side: +1)")
+    parser.add_argument(
+        "--scene",
+        default="schedule",
+        help="the game's scene (default: schedule, 12 s each of still, slow pan, fast yaw"
+        " with cuts, moving objects and thin detail)",
+    )
+    parser.add_argument(
+        "--picture-every",
+        type=float,
+        default=0.5,
+        help="seconds of game time between scored samples of the decoded picture"
+        " (0: do not score the picture)",
+    )
+    parser.add_argument(
+        "--truth-supersample", type=int, default=3,
+        help="subsamples per axis of the ground truth (as upcast eval's)",
+    )  # fmt: skip
     parser.add_argument(
         "--admission",
         choices=("admit", "refuse", "queue"),
@@ -131,10 +170,12 @@ def _mean(values: list[float]) -> float:
     return sum(values) / len(values) if values else 0.0
 
 
-async def _run_case(case: Case, args: argparse.Namespace, report: BenchReport) -> None:
+async def _run_case(
+    case: Case, args: argparse.Namespace, report: BenchReport, truth: GroundTruth
+) -> None:
     cmd = [sys.executable, "-m", "server.cli", "serve", "--sessions", str(case.sessions)]
     cmd += ["--display-size", args.display_size, "--fps", f"{args.fps:g}"]
-    cmd += ["--port", str(args.port), "--quality", case.mode]
+    cmd += ["--port", str(args.port), "--quality", case.mode, "--scene", args.scene]
     # Every session runs, even where admission would refuse one: the bench measures how
     # N sessions share the host (admission is measured by its own test).
     cmd += ["--admission", args.admission]
@@ -142,8 +183,15 @@ async def _run_case(case: Case, args: argparse.Namespace, report: BenchReport) -
         cmd += ["--upscaler", case.setting.method]
         cmd += ["--render-size", _size_for(args.display_size, case.setting.scale)]
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    recorder = StreamRecorder()
     with tempfile.NamedTemporaryFile(prefix="upcast-bench-adaptive-", suffix=".log") as log_file:
-        await _run_serve(cmd, env, log_file, case, args, report)
+        window, rows = await _run_serve(cmd, env, log_file, case, args, report, recorder)
+    if args.picture_every > 0:
+        # After serve has stopped: decoding and the ground truth take the idle host.
+        for broadcast, row in rows.items():
+            stream = recorder.streams.get(broadcast)
+            if stream is not None:
+                row.update(_viewed_picture(stream, window, truth, args))
 
 
 async def _run_serve(
@@ -153,15 +201,18 @@ async def _run_serve(
     case: Case,
     args: argparse.Namespace,
     report: BenchReport,
-) -> None:
+    recorder: StreamRecorder,
+) -> tuple[tuple[float, float], dict[str, dict[str, object]]]:
+    """Runs one case; the measured window (monotonic) and each session's report row."""
     http_port = args.port + 1
+    rows: dict[str, dict[str, object]] = {}
     proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stderr=log_file, stdout=subprocess.DEVNULL)
     link: MoqLink | None = None
     hog: subprocess.Popen[bytes] | None = None
     timeline: dict[str, list[tuple[float, Setting]]] = {}
     published: dict[str, list[tuple[float, int]]] = {}  # (counted at, frames) per poll
     try:
-        broadcasts, counter, link = await watch_every_session(proc, args.port)
+        broadcasts, counter, link = await watch_every_session(proc, args.port, recorder)
         await asyncio.sleep(args.warmup)
         start = time.monotonic()
         third = args.duration / 3
@@ -189,6 +240,7 @@ async def _run_serve(
                     timeline.setdefault(r["broadcast"], []).append((now - start, setting))
             await asyncio.sleep(1.0)
         end = start + args.duration
+        recorder.stop()
         log_file.flush()
         changes = _changes(Path(log_file.name).read_text(errors="replace"))
         model = QualityModel(load_figures(), _pixels(args.display_size))
@@ -199,6 +251,7 @@ async def _run_serve(
             case_row = _add_session(
                 report, case, b, bins, timeline.get(b, []), changes.get(b, []), model, args
             )
+            rows[b] = case_row
             counts = published.get(b, [])
             if len(counts) >= 2 and counts[-1][0] > counts[0][0]:
                 rate = (counts[-1][1] - counts[0][1]) / (counts[-1][0] - counts[0][0])
@@ -216,6 +269,73 @@ async def _run_serve(
         if link is not None and not link.closed:
             link.wt.close(0, "bench over")
         stop_child(proc, 60)
+    # From the second second, as the frame-rate bins.
+    return (start + 1.0, end), rows
+
+
+def _viewed_picture(
+    stream: RecordedStream,
+    window: tuple[float, float],
+    truth: GroundTruth,
+    args: argparse.Namespace,
+) -> dict[str, object]:
+    """The decoded picture's PSNR and SSIM against the ground truth over the game time
+    the measured window showed (see server/bench/adaptive_picture.py)."""
+    first = next(
+        (
+            stream.frames[pts][0]
+            for at, track, data in stream.fragments
+            if at >= window[0] and (pts := _decode_time_us(stream, track, data)) in stream.frames
+        ),
+        None,
+    )
+    latency = render_to_receive_ms(stream)
+    out: dict[str, object] = {
+        "render_to_receive_ms_p50": percentile(latency, 0.5),
+        "render_to_receive_ms_p95": percentile(latency, 0.95),
+    }
+    if first is None:
+        return {**out, "viewed_psnr_db": None, "viewed_ssim": None, "viewed_samples": 0}
+    # Game time runs at wall pace whatever the frame rate; the last half second is left
+    # out: its frames were still on their way when the window closed.
+    last = first + round((window[1] - window[0] - 0.5) * 1e6)
+    grid = game_time_grid(first, last, args.picture_every, 0.5 / args.fps)
+    counts = DecodeCounts()
+    score = score_stream(decoded_frames(stream, counts), grid, truth)
+    out.update(
+        viewed_psnr_db=score.mean_psnr(),
+        viewed_ssim=score.mean_ssim(),
+        viewed_samples=len(score.psnr_db),
+        shown_age_ms_p50=percentile(score.shown_age_ms, 0.5),
+        shown_age_ms_p95=percentile(score.shown_age_ms, 0.95),
+        decoded_frames=counts.decoded,
+        undecodable=counts.undecodable,
+        decoded_without_game_time=counts.without_game_time,
+    )
+    segment_of = scene_segments(args.scene)
+    if segment_of is not None:
+        segment: Callable[[float], str] = segment_of
+        out["viewed_psnr_db_by_segment"] = {
+            name: score.mean_psnr(functools.partial(_in_segment, segment, name))
+            for name in SCHEDULE_SEGMENTS
+        }
+    return out
+
+
+def _in_segment(segment: Callable[[float], str], name: str, game_us: int) -> bool:
+    return segment(game_us / 1e6) == name
+
+
+def _decode_time_us(stream: RecordedStream, track: str, data: bytes) -> int | None:
+    init = stream.inits.get(track)
+    if init is None:
+        return None
+    try:
+        info = parse_fragment(data, track_defaults(init))
+        timescale = next(iter(track_timescales(init).values()), 1_000_000)
+    except (ValueError, KeyError):
+        return None
+    return info.decode_time * 1_000_000 // timescale
 
 
 def _rate_at(timeline: list[tuple[float, Setting]], t: float) -> float:
@@ -327,6 +447,9 @@ def run(args: argparse.Namespace) -> int:
             "duration_s": args.duration,
             "warmup_s": args.warmup,
             "hog": "one busy-loop process for the middle third" if args.hog else None,
+            "scene": args.scene,
+            "picture_every_s": args.picture_every,
+            "truth_supersample": args.truth_supersample,
             "load_average_1m_at_start": round(os.getloadavg()[0], 2),
         },
     )
@@ -336,6 +459,17 @@ def run(args: argparse.Namespace) -> int:
         "game's ground truth, mean over its scenes) for the settings the session ran, "
         "weighted by time; a model figure, not a measurement of the decoded stream."
     )
+    report.notes.append(
+        "viewed_psnr_db / viewed_ssim: the decoded stream as the bench's viewer received "
+        "it, against the game's ground truth at display size (supersampled) at game-time "
+        "instants every picture_every_s; at each instant the frame on screen is the last "
+        "received whose game time is not after it, so a lost, skipped or never-rendered "
+        "frame is scored as the older picture still shown (shown_age_ms: how old). "
+        "render_to_receive_ms: wall time a frame reached the viewer minus when its render "
+        "started (one machine, one clock)."
+    )
+    width, height = (int(v) for v in args.display_size.lower().split("x"))
+    truth = GroundTruth(args.scene, (width, height), ss=args.truth_supersample)
     started = time.monotonic()
     for i, case in enumerate(cases, 1):
         print(
@@ -343,7 +477,7 @@ def run(args: argparse.Namespace) -> int:
             flush=True,
         )
         try:
-            asyncio.run(_run_case(case, args, report))
+            asyncio.run(_run_case(case, args, report, truth))
         except (RuntimeError, TimeoutError, OSError) as exc:
             print(f"upcast bench adaptive: {case.name}: {exc}", file=sys.stderr)
             return 1
@@ -354,9 +488,11 @@ def run(args: argparse.Namespace) -> int:
                 f"{c['frame_rate_mean']:.1f} fps, {c['share_of_seconds_at_90pct_of_its_rate']:.0%} "
                 f"of seconds at 90 % of that; published "
                 f"{c.get('session_published_fps', '-')}), expected "
-                f"{c['expected_psnr_db_table']} dB, {c['switches']} switches"
+                f"{c['expected_psnr_db_table']} dB, viewed {c.get('viewed_psnr_db')} dB "
+                f"SSIM {c.get('viewed_ssim')}, {c['switches']} switches"
             )
     report.config["run_s"] = round(time.monotonic() - started, 1)
+    report.config["ground_truth_render_s"] = round(truth.render_s, 1)
     report.write(args.json)
     print(f"wrote {args.json} in {time.monotonic() - started:.0f} s")
     return 0

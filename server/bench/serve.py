@@ -128,13 +128,14 @@ async def _wait_all_up(proc: subprocess.Popen[bytes], http_port: int) -> list[di
 
 
 async def watch_every_session(
-    proc: subprocess.Popen[bytes], port: int
+    proc: subprocess.Popen[bytes], port: int, counter: FrameCounter | None = None
 ) -> tuple[list[str], FrameCounter, MoqLink]:
     """Once every session of ``upcast serve`` (relay on ``port``) is up: one viewer on
-    the relay subscribed to each session's video track. The caller closes the link."""
+    the relay subscribed to each session's video track (``counter``, a new
+    FrameCounter by default). The caller closes the link."""
     rows = await _wait_all_up(proc, port + 1)
     broadcasts = [r["broadcast"] for r in rows]
-    counter = FrameCounter()
+    counter = counter if counter is not None else FrameCounter()
     link = await connect_moq(f"http://127.0.0.1:{port}/", on_events=counter.on_events)
     counter.subscribe(link, broadcasts)
     return broadcasts, counter, link
