@@ -57,7 +57,11 @@ class SimulatedHost:
     temporal_ms: float | None = None
     fg_render_share: float = 0.6
     step_s: float = 0.5
+    # Whether each session hears of the others waiting for cores (as under upcast serve:
+    # server/session/quality/peers.py), and what it heard at each step.
+    peers: bool = False
     now: float = 0.0
+    waiting: list[tuple[float, list[bool]]] = field(default_factory=list)
     log: list[tuple[float, int, str]] = field(default_factory=list)
     delivered: list[list[tuple[float, float]]] = field(default_factory=list)
 
@@ -78,7 +82,11 @@ class SimulatedHost:
         demand += self.hog_cores(self.now)
         stretch = max(1.0, demand / self.cores)
         busy = min(self.cores, demand)
+        waiting = [c.state.waiting_for_cores for c in self.controllers]
+        self.waiting.append((self.now, waiting))
+        peers = [self._peer_wait(i) for i in range(len(self.controllers))]
         for i, (controller, t) in enumerate(zip(self.controllers, times, strict=True)):
+            peer = peers[i]
             fps = rates[i] / stretch
             # A stage whose own median passes the frame period caps the rate too.
             slowest = max(t.values()) * stretch
@@ -93,11 +101,25 @@ class SimulatedHost:
                 scene=self.scene,
                 host_busy_cores=busy,
                 host_cores=self.cores,
+                peer_waiting_rate=peer[0] if peer is not None else None,
+                peer_cores_short=peer[1] if peer is not None else 0.0,
             )
             decision = controller.update(measurement)
             if decision is not None:
                 self.log.append((self.now, i, decision.log_line()))
         self.now += self.step_s
+
+    def _peer_wait(self, i: int) -> tuple[float, float] | None:
+        """As upcast serve's host file tells session ``i``: the other session waiting
+        for cores at the lowest rate, and how many it lacks (peers.py)."""
+        if not self.peers:
+            return None
+        waits = [
+            (c.setting.rate, c.state.cores_short)
+            for j, c in enumerate(self.controllers)
+            if j != i and c.state.cores_short is not None
+        ]
+        return min(waits) if waits else None
 
     def fps_between(self, session: int, start: float, end: float) -> list[float]:
         return [fps for t, fps in self.delivered[session] if start <= t < end]

@@ -49,6 +49,7 @@ def write_status(path: Path, state: str, live: LiveSession | None = None) -> Non
             quality=status.quality,
             quality_reason=status.quality_reason,
             quality_at_floor=status.quality_at_floor,
+            quality_cores_short=status.quality_cores_short,
             expected_psnr_db=status.expected_psnr_db,
             metrics_port=live.metrics_port,
         )

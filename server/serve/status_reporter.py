@@ -38,6 +38,9 @@ class StatusReporter:
             quality=q if isinstance(q := state.get("quality"), str) else None,
             quality_reason=r if isinstance(r := state.get("quality_reason"), str) else None,
             quality_at_floor=f if isinstance(f := state.get("quality_at_floor"), bool) else None,
+            quality_cores_short=(
+                float(w) if isinstance(w := state.get("quality_cores_short"), int | float) else None
+            ),
             expected_psnr_db=(
                 float(e) if isinstance(e := state.get("expected_psnr_db"), int | float) else None
             ),

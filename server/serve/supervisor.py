@@ -37,6 +37,7 @@ from server.serve.admission import Admission
 from server.serve.session_process import SOURCE_ENDED_CODE
 from server.serve.spec import SessionSpec
 from server.serve.tokens import TokenMinter, no_token
+from server.session.quality.peers import HOST_FILE_ENV, PeerRow, write_host_file
 from server.stack.local import SessionConfig, session_files
 from server.stream_config import StreamConfig
 
@@ -112,6 +113,7 @@ class Supervisor:
         self.cert_hash_hex = cert_hash_hex
         self.token_for = token_for
         self._dir = Path(tempfile.mkdtemp(prefix="upcast-serve-"))
+        self.host_path = self._dir / "host.json"
         self._generation = 0
 
     # -- lifecycle ------------------------------------------------------------------------
@@ -195,9 +197,13 @@ class Supervisor:
         # group and removes the files (the session's own reaper does too).
         for path in session_files(s.name):
             orphan_guard.watch_path(path)
+        # Where the host's other sessions say what they wait for (peers.py).
+        env = {**os.environ, HOST_FILE_ENV: str(self.host_path)}
+        env[HOST_FILE_ENV + "_INDEX"] = str(s.index)
         s.proc = subprocess.Popen(
             [sys.executable, "-m", "server.serve.session_process", str(spec_path)],
             start_new_session=True,
+            env=env,
         )
         orphan_guard.watch_process(s.proc.pid, group=True)
         if self.cpu is not None:
@@ -243,6 +249,27 @@ class Supervisor:
                 self._start(s)
         self._admit(now)
         self._move_shares(now)
+        self._tell_peers()
+
+    def _tell_peers(self) -> None:
+        """The host file: which running sessions wait for cores to raise their frame rate,
+        at what fraction of their target, short of how many idle cores (the others'
+        controllers leave them the idle cores, and free some when they can)."""
+        rows = []
+        for s in self.sessions:
+            if s.proc is None or s.proc.poll() is not None:
+                continue
+            status = s.status()
+            rate, short = status.get("frame_rate"), status.get("quality_cores_short")
+            waiting = isinstance(rate, int | float) and isinstance(short, int | float)
+            if waiting and s.config.fps > 0:
+                rows.append(PeerRow(s.index, float(rate) / s.config.fps, float(short)))  # type: ignore[arg-type]
+            else:
+                rows.append(PeerRow(s.index, None, None))
+        try:
+            write_host_file(self.host_path, rows)
+        except OSError as exc:  # a full or vanished temp dir: the sessions read nothing
+            log.debug("host file not written: %s", exc)
 
     def _move_shares(self, now: float) -> None:
         """Every PERIOD_S, the weights share_planner gives the running sessions."""
@@ -386,6 +413,9 @@ class Supervisor:
                     "quality": status.get("quality"),
                     "quality_reason": status.get("quality_reason"),
                     "quality_at_floor": status.get("quality_at_floor"),
+                    # Below its rate, waiting for idle cores to raise it: the host's other
+                    # sessions hold their step ups (server/session/quality/peers.py).
+                    "quality_cores_short": status.get("quality_cores_short"),
                     "expected_psnr_db": status.get("expected_psnr_db"),
                     # Why it was not started (refused or queued), else None.
                     "admission_reason": s.admission_reason,

@@ -147,6 +147,12 @@ class StatusRecord(BaseModel):
         "still misses the target: the host cannot carry more (upcast serve admits no "
         "further session while one says so)",
     )
+    quality_cores_short: float | None = Field(
+        default=None,
+        description="adaptive quality runs below the target frame rate and its next rate "
+        "up lacks only this many idle cores (None: not waiting); upcast serve's other "
+        "sessions at a higher rate leave it their idle cores, and free them when they can",
+    )
     expected_psnr_db: float | None = Field(
         default=None,
         description="PSNR the current setting is expected to give against the game's "

@@ -42,6 +42,7 @@ from server.session.quality.controller import (
 )
 from server.session.quality.figures import FiguresError
 from server.session.quality.model import QualityModel, Setting
+from server.session.quality.peers import HostPeers
 from server.session.quality.scene import SceneTracker
 from server.session.session_control import ControlResult
 
@@ -115,6 +116,7 @@ class SessionQuality:
         *,
         enabled: bool = True,
         host: HostLoad | None = None,
+        peers: HostPeers | None = None,
         registry: CollectorRegistry | None = None,
         unavailable: str | None = None,
     ) -> None:
@@ -126,6 +128,7 @@ class SessionQuality:
         self.unavailable = unavailable
         self.scene = SceneTracker()
         self.host = host if host is not None else HostLoad()
+        self.peers = peers if peers is not None else HostPeers.from_environment()
         self._state = stream_state
         self._metrics = QualityMetrics(registry) if registry is not None else None
         self.decisions: list[Decision] = []
@@ -244,6 +247,7 @@ class SessionQuality:
         if self.controller is None or not self.enabled:
             return None
         snap = self.monitor.snapshot()
+        peer = self.peers.waiting()
         p50: Mapping[str, float] = {k: f.p50_ms for k, f in snap.stages.items()}
         p95: Mapping[str, float] = {k: f.p95_ms for k, f in snap.stages.items()}
         measurement = Measurement(
@@ -255,6 +259,8 @@ class SessionQuality:
             scene=self.scene.scene(now),
             host_busy_cores=self.host.busy_cores(),
             host_cores=self.host.cores,
+            peer_waiting_rate=peer.rate if peer is not None else None,
+            peer_cores_short=peer.cores_short if peer is not None else 0.0,
         )
         log.debug(
             "quality check: %.1f fps (%d frames), p50 %s, p95 %s, scene %s, host busy %s of %g",
@@ -312,6 +318,11 @@ class SessionQuality:
         st = self.controller.state
         self._state["quality_reason"] = st.reason if self.enabled else "fixed"
         self._state["quality_at_floor"] = bool(self.enabled and st.at_floor)
+        short = st.cores_short if self.enabled else None
+        if short is None:
+            self._state.pop("quality_cores_short", None)
+        else:
+            self._state["quality_cores_short"] = round(short, 3)
         if math.isfinite(st.expected_psnr_db):
             self._state["expected_psnr_db"] = round(st.expected_psnr_db, 2)
         if st.headroom_cores is not None:

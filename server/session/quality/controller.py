@@ -45,6 +45,13 @@ itself (the miss, the budgets, the CPU), and a step up tries the next rate up be
 better picture at the same rate: a rate below the target is a debt, paid back first, so
 no step up improves the picture until the rate is back.
 
+**Sessions on one host** (``upcast serve``, peers.py): a session below its target rate
+whose next rate up lacks only idle cores says so (``ControllerState.cores_short``), and
+the supervisor tells the others. While one waits at a lower rate than ours for cores we
+could free, we take no step up that costs CPU, and when the idle cores fall short we step
+our picture down by what it lacks (``_yield_to_peer``, one step per ``UP_HOLD_S``); a
+shortfall all we could free would not cover holds nothing.
+
 Degradation preference (WebRTC's ``degradationPreference``) says when the rate goes
 down: ``framerate`` (games) only when the cheapest setting at the full rate still
 misses, the picture gives first; ``balanced`` before the encoded size goes down, and
@@ -92,6 +99,7 @@ SETTLE_S = 2.0
 WARMUP_S = 5.0
 SCALE_STEP = 0.25
 MIN_FRAMES = 5  # a window with fewer frames says nothing about the rate
+YIELD_SAVING = 0.1  # a step down for a waiting session frees this share of our CPU or more
 
 
 @dataclass(frozen=True)
@@ -136,6 +144,11 @@ class Measurement:
     scene: SceneClass = "unknown"
     host_busy_cores: float | None = None  # every process on the host
     host_cores: float = 1.0
+    # Another session on the host waiting for cores to raise its rate (peers.py): the
+    # lowest such rate (a fraction of its target) and the idle cores it is short of;
+    # None: none waits, or the session runs alone.
+    peer_waiting_rate: float | None = None
+    peer_cores_short: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -168,6 +181,14 @@ class ControllerState:
     switches: int = 0
     last_change_at: float | None = None
     at_floor: bool = False  # nothing cheaper is left and the target is still missed
+    # Below the target rate with a rate step up that only the host's spare cores stop,
+    # and by how many cores (None: not waiting): what the host's other sessions leave
+    # idle should come here first (peers.py).
+    cores_short: float | None = None
+
+    @property
+    def waiting_for_cores(self) -> bool:
+        return self.cores_short is not None
 
 
 @dataclass
@@ -282,6 +303,7 @@ class QualityController:
         if miss is not None:
             self._misses += 1
             self._last_miss_at = m.now
+            self.state.cores_short = None  # a session missing its rate is not held by cores
         else:
             self._misses = 0
             if self._holding(m):
@@ -290,6 +312,10 @@ class QualityController:
                 self._said_floor = False
         if miss is not None and self._misses >= DOWN_CHECKS:
             return self._down(m, miss, p50)
+        if miss is None and self._quiet_for(m.now) >= UP_HOLD_S:
+            yielded = self._yield_to_peer(m)
+            if yielded is not None:
+                return yielded
         if miss is None and self._holding(m) and self._quiet_for(m.now) >= UP_HOLD_S:
             return self._up(m)
         return None
@@ -604,7 +630,18 @@ class QualityController:
         # Without a host reading, a step may add a tenth of what the session takes.
         spare = (idle - HOST_RESERVE * m.host_cores) if idle is not None else 0.1 * here_cpu
         spare_text = f"{idle:.2f} idle cores" if idle is not None else "no host reading"
-        faster = self._faster(m, here_cpu, spare)
+        if self._peer_claims(m):
+            # Another session on the host waits at a lower rate than ours, for cores we
+            # could leave it: the idle cores are its. Only a step costing nothing goes.
+            self.state.cores_short = None
+            spare = min(spare, 0.0)
+            spare_text = (
+                f"{spare_text}, held for a session waiting at "
+                f"{m.peer_waiting_rate or 0.0:.0%} of its rate"
+            )
+            faster = None
+        else:
+            faster = self._faster(m, here_cpu, spare)
         if faster is not None:
             cand, extra = faster
             reason = f"{self._fps_of(cand):.3g} fps again for {extra:+.2f} cores ({spare_text})"
@@ -641,6 +678,57 @@ class QualityController:
         self._last_up = (m.now, current)
         return self._switch(m, cand, "up", reason)
 
+    def _yield_options(self, m: Measurement) -> list[tuple[float, Setting, float]]:
+        """(score, setting, cores freed) of each cheaper picture at our rate and encoded
+        size (a yield moves no viewer to a new track)."""
+        current = self.state.setting
+        here_cpu = self.model.predict(current).cpu_cores(self._fps_of(current))
+        out: list[tuple[float, Setting, float]] = []
+        for cand in self._candidates():
+            if cand == current or self._blocked_now(cand, m.now):
+                continue
+            if abs(cand.encode_scale - current.encode_scale) > 1e-6:
+                continue
+            freed = here_cpu - self.model.predict(cand).cpu_cores(self._fps_of(cand))
+            if freed <= 0:
+                continue
+            score = self.model.expected_psnr(cand, m.scene) - self._switch_cost(current, cand)
+            out.append((score, cand, freed))
+        return out
+
+    def _peer_claims(self, m: Measurement) -> bool:
+        """Another session waits at a lower rate than ours for cores we could free (its
+        shortfall already counts the host's idle cores): a claim on our spare. One that
+        all we could free would not meet is none, or a session would give its picture
+        for nothing."""
+        peer = m.peer_waiting_rate
+        if peer is None or peer >= self.state.setting.rate - 1e-6:
+            return False
+        freeable = max((f for _, _, f in self._yield_options(m)), default=0.0)
+        return freeable >= m.peer_cores_short
+
+    def _yield_to_peer(self, m: Measurement) -> Decision | None:
+        """Another session on the host waits for cores at a lower rate than ours, which
+        the idle cores do not cover but a cheaper picture of ours would: the best-looking
+        cheaper setting at our rate that frees what it lacks (and ``YIELD_SAVING`` of our
+        CPU at least). None when nobody waits lower, or we cannot free enough."""
+        current = self.state.setting
+        peer = m.peer_waiting_rate
+        if peer is None or peer >= current.rate - 1e-6:
+            return None
+        here_cpu = self.model.predict(current).cpu_cores(self._fps_of(current))
+        need = max(m.peer_cores_short, YIELD_SAVING * here_cpu)
+        options = [o for o in self._yield_options(m) if o[2] >= need - 1e-9]
+        if not options:
+            return None
+        _, cand, freed = max(options, key=lambda o: o[0])
+        self._last_up = None  # not a step up: a miss after it is not a failed probation
+        reason = (
+            f"another session on the host waits for cores at {peer:.0%} of its rate; "
+            f"frees {freed:.2f} cores"
+        )
+        return self._switch(m, cand, "down", reason)
+
     def _faster(
         self, m: Measurement, here_cpu: float, spare: float
     ) -> tuple[Setting, float] | None:
@@ -648,10 +736,12 @@ class QualityController:
         to fit there (``UP_MARGIN``) within the spare cores, and the cores it adds."""
         current = self.state.setting
         higher = [r for r in self._rates() if r > current.rate + 1e-6]
+        self.state.cores_short = None
         if not higher:
             return None
         rate = min(higher)
         best: tuple[float, Setting, float] | None = None
+        short: float | None = None  # the fewest cores a candidate lacked
         for cand in self._candidates([rate]):
             if self._blocked_now(cand, m.now) or self._encode_step(current, cand) > 1:
                 continue
@@ -664,10 +754,13 @@ class QualityController:
                 continue
             extra = times.cpu_cores(self._fps_of(cand)) - here_cpu
             if extra > 0 and extra > spare:
+                lack = extra - spare  # the host's idle cores already count in spare
+                short = lack if short is None else min(short, lack)
                 continue
             score = quality - self._switch_cost(current, cand)
             if best is None or score > best[0]:
                 best = (score, cand, extra)
+        self.state.cores_short = short if best is None else None
         return None if best is None else (best[1], best[2])
 
     def _up_reach(self, current: Setting) -> float:
