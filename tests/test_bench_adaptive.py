@@ -6,8 +6,17 @@ from __future__ import annotations
 
 import pytest
 
-from server.bench.adaptive import _back_at, _bins, _changes, _parse_fixed, _rate_at, _size_for
-from server.session.quality.model import Setting
+from server.bench.adaptive import (
+    _back_at,
+    _bins,
+    _changes,
+    _parse_fixed,
+    _rate_at,
+    _size_for,
+    _stepped_up_after,
+)
+from server.session.quality.figures import load_figures
+from server.session.quality.model import QualityModel, Setting
 
 
 def test_bins_count_arrivals_per_second_inside_the_window() -> None:
@@ -57,3 +66,16 @@ def test_each_second_is_held_to_the_rate_the_session_ran_at() -> None:
     assert _rate_at(timeline, 2.5) == 1.0
     assert _rate_at(timeline, 3.5) == 0.5
     assert _rate_at([], 9.0) == 1.0
+
+
+def test_the_step_up_after_the_hog_is_a_higher_rate_or_a_better_picture() -> None:
+    model = QualityModel(load_figures(), 1280 * 720)
+    low = Setting("bilinear", 4.0, rate=2 / 3)
+    timeline = [(29.0, low), (30.0, low), (31.0, low), (33.0, Setting("bilinear", 4.0)),
+                (36.0, Setting("bilinear", 3.0))]  # fmt: skip
+    assert _stepped_up_after(timeline, 30.0, model) == 3.0  # the rate, first
+    same_rate = [(30.0, Setting("bilinear", 4.0)), (32.0, Setting("bilinear", 4.0)),
+                 (34.5, Setting("bilinear", 3.5))]  # fmt: skip
+    assert _stepped_up_after(same_rate, 30.0, model) == 4.5
+    assert _stepped_up_after(same_rate[:2], 30.0, model) is None
+    assert _stepped_up_after([(31.0, low)], 30.0, model) is None  # nothing before

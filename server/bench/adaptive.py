@@ -166,6 +166,26 @@ def _back_at(bins: list[float], start_bin: int, target: float) -> float | None:
     return None
 
 
+def _stepped_up_after(
+    timeline: list[tuple[float, Setting]], at: float, model: QualityModel
+) -> float | None:
+    """Seconds from ``at`` until a poll shows a setting above the one running at ``at``
+    (a higher frame rate, or the same rate and a better expected picture)."""
+    before = [s for t, s in timeline if t <= at]
+    if not before:
+        return None
+    base = before[-1]
+    base_q = model.expected_psnr(base, "unknown")
+    for t, s in timeline:
+        if t <= at:
+            continue
+        if s.rate > base.rate + 1e-6 or (
+            abs(s.rate - base.rate) < 1e-6 and model.expected_psnr(s, "unknown") > base_q + 0.05
+        ):
+            return round(t - at, 1)
+    return None
+
+
 def _mean(values: list[float]) -> float:
     return sum(values) / len(values) if values else 0.0
 
@@ -420,6 +440,12 @@ def _add_session(
         viewer_fps_during_hog=round(_mean(bins[third : 2 * third]), 2),
         viewer_fps_after_hog=round(_mean(bins[2 * third :]), 2),
         seconds_to_90pct_after_hog_start=_back_at(bins, third, target) if args.hog else None,
+        # The timeline counts from the window's start; the bins from its second second.
+        seconds_to_step_up_after_hog_end=(
+            _stepped_up_after(timeline, 2 * args.duration / 3, model)
+            if args.hog and case.mode == "auto"
+            else None
+        ),
         switches=len(changes),
         changes=changes,
         settings_seconds=seconds,
