@@ -19,7 +19,8 @@ from server.game.input import InputMessage
 from server.ops.host_load import HostLoad
 from server.session.input_router import InputRouter
 from server.session.quality.adapter import AUTO_SOURCE, SessionQuality, session_quality
-from server.session.quality.controller import QualityGoal
+from server.session.quality.controller import Decision, Measurement, QualityGoal
+from server.session.quality.peers import HostPeers, PeerRow, write_host_file
 from server.session.quality.scene import SceneTracker, camera_step
 from server.session.runner import StreamSettings
 from server.session.session_control import ControlResult
@@ -303,3 +304,34 @@ def test_a_served_session_under_auto_follows_its_goal_end_to_end() -> None:
         assert record.last_control is not None and not record.last_control.accepted
         assert "above the session's configured 15 fps" in (record.last_control.reason or "")
         assert record.frame_rate == 10.0
+
+
+def test_the_host_file_reaches_the_controller_and_its_shortfall_the_status(
+    tmp_path: Path,
+) -> None:
+    """What peers.py carries each way: another session's wait goes into the measurement;
+    this session's own shortfall goes into the stream state the status track reports."""
+    adapter, _, _ = _adapter(tmp_path)
+    assert adapter.controller is not None
+    host_file = tmp_path / "host.json"
+    write_host_file(host_file, [PeerRow(1, None), PeerRow(2, 0.5, 0.25)])
+    adapter.peers = HostPeers(host_file, own_index=1)
+    seen: list[Measurement] = []
+    real_update = adapter.controller.update
+
+    def update(m: Measurement) -> Decision | None:
+        seen.append(m)
+        return real_update(m)
+
+    adapter.controller.update = update  # type: ignore[method-assign]
+    adapter.step(1000.0)
+    assert (seen[-1].peer_waiting_rate, seen[-1].peer_cores_short) == (0.5, 0.25)
+    assert "quality_cores_short" not in adapter._state
+    adapter.controller.state.cores_short = 0.123456
+    adapter.step(1001.0)
+    assert adapter._state["quality_cores_short"] == 0.123
+    adapter.controller.state.cores_short = None
+    adapter.peers = HostPeers(None, own_index=1)  # a session on its own
+    adapter.step(1002.0)
+    assert seen[-1].peer_waiting_rate is None
+    assert "quality_cores_short" not in adapter._state
