@@ -301,24 +301,24 @@ def _viewed_picture(
 ) -> dict[str, object]:
     """The decoded picture's PSNR and SSIM against the ground truth over the game time
     the measured window showed (see server/bench/adaptive_picture.py)."""
-    first = next(
-        (
-            stream.frames[pts][0]
-            for at, track, data in stream.fragments
-            if at >= window[0] and (pts := _decode_time_us(stream, track, data)) in stream.frames
-        ),
-        None,
-    )
+    shown = [
+        stream.frames[pts][0]
+        for at, track, data in stream.fragments
+        if at >= window[0] and (pts := _decode_time_us(stream, track, data)) in stream.frames
+    ]
     latency = render_to_receive_ms(stream)
     out: dict[str, object] = {
         "render_to_receive_ms_p50": percentile(latency, 0.5),
         "render_to_receive_ms_p95": percentile(latency, 0.95),
     }
-    if first is None:
+    if not shown:
         return {**out, "viewed_psnr_db": None, "viewed_ssim": None, "viewed_samples": 0}
-    # Game time runs at wall pace whatever the frame rate; the last half second is left
-    # out: its frames were still on their way when the window closed.
-    last = first + round((window[1] - window[0] - 0.5) * 1e6)
+    # The game time the window's frames showed: game time is not wall time (a game that
+    # cannot keep its rate renders every tick late, and its world runs slow), so the
+    # span is the received frames', and a sample between two of them is scored against
+    # the older one still on screen.
+    first, last = shown[0], max(shown)
+    out["game_seconds_per_second"] = round((last - first) / 1e6 / (window[1] - window[0]), 3)
     grid = game_time_grid(first, last, args.picture_every, 0.5 / args.fps)
     counts = DecodeCounts()
     score = score_stream(decoded_frames(stream, counts), grid, truth)
@@ -490,7 +490,9 @@ def run(args: argparse.Namespace) -> int:
         "it, against the game's ground truth at display size (supersampled) at game-time "
         "instants every picture_every_s; at each instant the frame on screen is the last "
         "received whose game time is not after it, so a lost, skipped or never-rendered "
-        "frame is scored as the older picture still shown (shown_age_ms: how old). "
+        "frame is scored as the older picture still shown (shown_age_ms: how old), over the "
+        "game time the window's frames span. A game that cannot keep its rate renders every "
+        "tick late and its world runs slow: game_seconds_per_second says how slow. "
         "render_to_receive_ms: wall time a frame reached the viewer minus when its render "
         "started (one machine, one clock)."
     )
