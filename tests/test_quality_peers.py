@@ -153,3 +153,25 @@ def test_nobody_gives_its_picture_for_a_claim_it_cannot_meet() -> None:
     assert told.controllers[0].state.waiting_for_cores, told.log
     assert not [line for _, _, line in told.log if "waits for cores" in line], told.log
     assert told.controllers[1].setting == alone.controllers[1].setting
+
+
+def test_with_no_picture_left_to_give_a_session_meets_the_waiting_one_half_way() -> None:
+    """Both at their cheapest picture, one at 30 fps and one at 15 that could run faster:
+    the first steps down one rate (never below the other's), and both run 20 fps."""
+
+    def run(peers: bool) -> SimulatedHost:
+        cheapest = Setting("bilinear", 4.0, True, 3.0)
+        first = controller(cheapest)
+        second = controller(Setting("bilinear", 4.0, True, 3.0, rate=0.5))
+        host = SimulatedHost(cores=0.9, controllers=[first, second], peers=peers)
+        host.run(60.0)
+        return host
+
+    alone = run(False)
+    assert [c.setting.rate for c in alone.controllers] == [1.0, 0.5], alone.log
+    told = run(True)
+    assert [c.setting.rate for c in told.controllers] == [pytest.approx(2 / 3)] * 2, told.log
+    for i in (0, 1):
+        assert _mean_fps(told, i, 30.0, 60.0) >= 0.9 * 20.0, told.log
+    yields = [line for _, i, line in told.log if "waits for cores" in line]
+    assert len(yields) == 1 and "at 20 fps" in yields[0], told.log

@@ -678,13 +678,24 @@ class QualityController:
         self._last_up = (m.now, current)
         return self._switch(m, cand, "up", reason)
 
-    def _yield_options(self, m: Measurement) -> list[tuple[float, Setting, float]]:
-        """(score, setting, cores freed) of each cheaper picture at our rate and encoded
-        size (a yield moves no viewer to a new track)."""
+    def _yield_options(
+        self, m: Measurement, lower_rate: bool = False
+    ) -> list[tuple[float, Setting, float]]:
+        """(score, setting, cores freed) of each cheaper setting at our encoded size (a
+        yield moves no viewer to a new track): at our rate, or with ``lower_rate`` at the
+        next rate down, if that stays above the waiting session's (max-min: we never go
+        below the one we yield to)."""
         current = self.state.setting
         here_cpu = self.model.predict(current).cpu_cores(self._fps_of(current))
+        rates = [current.rate]
+        if lower_rate:
+            peer = m.peer_waiting_rate if m.peer_waiting_rate is not None else 1.0
+            lower = [r for r in self._rates() if peer + 1e-6 < r < current.rate - 1e-6]
+            if not lower:
+                return []
+            rates = [max(lower)]
         out: list[tuple[float, Setting, float]] = []
-        for cand in self._candidates():
+        for cand in self._candidates(rates):
             if cand == current or self._blocked_now(cand, m.now):
                 continue
             if abs(cand.encode_scale - current.encode_scale) > 1e-6:
@@ -704,14 +715,17 @@ class QualityController:
         peer = m.peer_waiting_rate
         if peer is None or peer >= self.state.setting.rate - 1e-6:
             return False
-        freeable = max((f for _, _, f in self._yield_options(m)), default=0.0)
+        options = self._yield_options(m) + self._yield_options(m, lower_rate=True)
+        freeable = max((f for _, _, f in options), default=0.0)
         return freeable >= m.peer_cores_short
 
     def _yield_to_peer(self, m: Measurement) -> Decision | None:
         """Another session on the host waits for cores at a lower rate than ours, which
-        the idle cores do not cover but a cheaper picture of ours would: the best-looking
-        cheaper setting at our rate that frees what it lacks (and ``YIELD_SAVING`` of our
-        CPU at least). None when nobody waits lower, or we cannot free enough."""
+        the idle cores do not cover but a cheaper setting of ours would: the best-looking
+        cheaper picture at our rate that frees what it lacks (and ``YIELD_SAVING`` of our
+        CPU at least), else the best-looking at the next rate down if it stays above the
+        other's (the picture gives before the rate, as in ``framerate``). None when
+        nobody waits lower, or we cannot free enough."""
         current = self.state.setting
         peer = m.peer_waiting_rate
         if peer is None or peer >= current.rate - 1e-6:
@@ -719,6 +733,8 @@ class QualityController:
         here_cpu = self.model.predict(current).cpu_cores(self._fps_of(current))
         need = max(m.peer_cores_short, YIELD_SAVING * here_cpu)
         options = [o for o in self._yield_options(m) if o[2] >= need - 1e-9]
+        if not options:
+            options = [o for o in self._yield_options(m, True) if o[2] >= need - 1e-9]
         if not options:
             return None
         _, cand, freed = max(options, key=lambda o: o[0])
