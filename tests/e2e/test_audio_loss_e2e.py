@@ -334,20 +334,30 @@ def test_an_undecodable_packet_does_not_end_the_sound(
     try:
         page.click("#audio-mute")
         page.wait_for_function("() => window.upcast.stats().audio.decoded > 50", timeout=20_000)
-        before = stats(page)["audio"]
-        # Three invalid packets (TOC code 3, a count of 63 frames of 20 ms: longer than
-        # Opus' 120 ms), then two frames with a timestamp and no packet at all.
-        lossy.replace = [b"\xff\xff\xff\xff"] * 3 + [b""] * 2
-        page.wait_for_function(
-            f"() => window.upcast.stats().audio.decoded > {before['decoded']} + 150",
-            timeout=10_000,
-        )
-        after = stats(page)["audio"]
+        before = after = stats(page)["audio"]
+        # On a loaded machine the relay may skip the audio group the bad packets rode in
+        # (the page then never sees them: a CI run got 1 of 2 empty frames and no invalid
+        # packet): inject again, at most three times, until the page has met them.
+        injections = 0
+        while injections < 3 and not (
+            after["decoderErrors"] >= 1 and after["malformed"] > before["malformed"]
+        ):
+            injections += 1
+            # Three invalid packets (TOC code 3, a count of 63 frames of 20 ms: longer than
+            # Opus' 120 ms), then two frames with a timestamp and no packet at all.
+            lossy.replace = [b"\xff\xff\xff\xff"] * 3 + [b""] * 2
+            page.wait_for_function(
+                f"() => window.upcast.stats().audio.decoded > {after['decoded']} + 150",
+                timeout=10_000,
+            )
+            after = stats(page)["audio"]
     finally:
         page.close()
     counts = ("decoded", "decoderErrors", "decoderRestarts", "malformed")
-    print("bad packets:", {k: after[k] for k in counts})
+    print("bad packets:", injections, "injections:", {k: after[k] for k in counts})
     assert after["decoderErrors"] >= 1, after  # the bad packets did break the decoder
     assert after["decoderRestarts"] >= 1, after
-    assert after["malformed"] - before["malformed"] == 2, after  # dropped, never decoded
+    # The sound went on: 150 packets decoded after the last injection (waited above).
+    # Each empty frame is counted and dropped, never decoded: at most two an injection.
+    assert 1 <= after["malformed"] - before["malformed"] <= 2 * injections, after
     live.check()
