@@ -48,6 +48,7 @@ from server.bench.adaptive_picture import (
     GroundTruth,
     RecordedStream,
     StreamRecorder,
+    decode_times_us,
     decoded_frames,
     game_time_grid,
     percentile,
@@ -57,7 +58,6 @@ from server.bench.adaptive_picture import (
 from server.bench.report import BenchReport
 from server.bench.serve import ROOT, _poll_sessions, watch_every_session
 from server.game.render.scenes import SCHEDULE_SEGMENTS, scene_segments
-from server.media.cmaf_read import parse_fragment, track_defaults, track_timescales
 from server.ops.process import stop_child
 from server.quic.moq_link import MoqLink
 from server.session.quality.figures import load_figures
@@ -303,8 +303,8 @@ def _viewed_picture(
     the measured window showed (see server/bench/adaptive_picture.py)."""
     shown = [
         stream.frames[pts][0]
-        for at, track, data in stream.fragments
-        if at >= window[0] and (pts := _decode_time_us(stream, track, data)) in stream.frames
+        for (at, _, _), pts in zip(stream.fragments, decode_times_us(stream), strict=True)
+        if at >= window[0] and pts is not None and pts in stream.frames
     ]
     latency = render_to_receive_ms(stream)
     out: dict[str, object] = {
@@ -344,18 +344,6 @@ def _viewed_picture(
 
 def _in_segment(segment: Callable[[float], str], name: str, game_us: int) -> bool:
     return segment(game_us / 1e6) == name
-
-
-def _decode_time_us(stream: RecordedStream, track: str, data: bytes) -> int | None:
-    init = stream.inits.get(track)
-    if init is None:
-        return None
-    try:
-        info = parse_fragment(data, track_defaults(init))
-        timescale = next(iter(track_timescales(init).values()), 1_000_000)
-    except (ValueError, KeyError):
-        return None
-    return info.decode_time * 1_000_000 // timescale
 
 
 def _rate_at(timeline: list[tuple[float, Setting]], t: float) -> float:

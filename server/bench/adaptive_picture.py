@@ -275,28 +275,44 @@ def _stretch(picture: U8, width: int, height: int) -> U8:
     return out[0].permute(1, 2, 0).round().clamp(0, 255).to(torch.uint8).numpy()
 
 
+def decode_times_us(stream: RecordedStream) -> list[int | None]:
+    """Each received fragment's decode time in microseconds (the timing record's
+    ``pts_us``), in ``stream.fragments`` order; None where its track's init segment is
+    missing or the fragment does not parse. Each init segment is read once."""
+    clocks: dict[str, tuple[int, dict[int, Any]] | None] = {}
+    out: list[int | None] = []
+    for _, track, data in stream.fragments:
+        if track not in clocks:
+            init = stream.inits.get(track)
+            try:
+                clocks[track] = (
+                    None
+                    if init is None
+                    else (next(iter(track_timescales(init).values()), US), track_defaults(init))
+                )
+            except (KeyError, ValueError):
+                clocks[track] = None
+        clock = clocks[track]
+        if clock is None:
+            out.append(None)
+            continue
+        try:
+            out.append(parse_fragment(data, clock[1]).decode_time * US // clock[0])
+        except ValueError:
+            out.append(None)
+    return out
+
+
 def render_to_receive_ms(stream: RecordedStream) -> list[float]:
     """Per received frame: wall time received minus wall time its render started (one
     machine, one clock), in ms, for frames whose timing record arrived."""
     out: list[float] = []
-    for track, walls in stream.received_wall_us.items():
-        fragments = [f for f in stream.fragments if f[1] == track]
-        init = stream.inits.get(track)
-        if init is None:
-            continue
-        try:
-            timescale = next(iter(track_timescales(init).values()), US)
-            defaults = track_defaults(init)
-        except (KeyError, ValueError):
-            continue
-        for (_, _, data), received in zip(fragments, walls, strict=False):
-            try:
-                info = parse_fragment(data, defaults)
-            except ValueError:
-                continue
-            known = stream.frames.get(info.decode_time * US // timescale)
-            if known is not None and known[1] > 0:
-                out.append((received - known[1]) / 1000)
+    received = {track: iter(walls) for track, walls in stream.received_wall_us.items()}
+    for (_, track, _), pts in zip(stream.fragments, decode_times_us(stream), strict=True):
+        wall = next(received.get(track, iter(())), None)
+        known = stream.frames.get(pts) if pts is not None else None
+        if wall is not None and known is not None and known[1] > 0:
+            out.append((wall - known[1]) / 1000)
     return out
 
 
