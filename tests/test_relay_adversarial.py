@@ -539,13 +539,23 @@ def test_vanished_clients_are_dropped_by_the_idle_timeout(cert: CertBundle) -> N
 # -- the CONNECT -----------------------------------------------------------------------
 
 
+# Sixteen connections' deadlines fire in one burst on the loop the attacker and the
+# viewers share; a loaded CI run saw the last close reach the attacker 1.01 s after its
+# deadline. 3 s still tells the deadline from the 10 s idle timeout, and the counted
+# CONNECT_DEADLINE violations say which of the two closed them.
+SLOW_CONNECT_CLOSE_WITHIN_S = 3.0
+
+
 def test_slow_connects_are_closed_by_the_connect_deadline(cert: CertBundle) -> None:
-    outcome = scenario_test(cert, "slow_connect", duration_s=TEST_GUARD.connect_deadline_s + 1.5)
+    deadline = TEST_GUARD.connect_deadline_s
+    outcome = scenario_test(
+        cert, "slow_connect", duration_s=deadline + SLOW_CONNECT_CLOSE_WITHIN_S + 0.5
+    )
     assert_common(outcome)
     result = outcome.result
     assert result.open_at_end == 0, f"{result.open_at_end} slow connections still open"
     assert result.closed_at is not None and result.crossed_at is not None
-    assert result.closed_at - result.crossed_at <= TEST_GUARD.connect_deadline_s + CLOSE_WITHIN_S
+    assert result.closed_at - result.crossed_at <= deadline + SLOW_CONNECT_CLOSE_WITHIN_S
     outcome.assert_counted(*SCENARIOS["slow_connect"].expects)
 
 

@@ -319,8 +319,15 @@ def test_lost_packets_make_no_click_storm_and_no_drift(
         # the readings while the latency moved 14 ms): the medians no longer say how much
         # of the offset's move the latency should show. What is left to check is the
         # harm drift does: the latency must not have grown beyond the offset's moves.
+        # A jump inside a reading's 6 s window puts that reading's median anywhere between
+        # the levels on either side of it, which the offsets' medians do not follow: a CI
+        # run with a 31 ms jump saw the latency grow 29.9 ms against an offset move of
+        # 9.1 ms. So one largest jump more is allowed; the failure this guards against
+        # (gaps played in addition to the sound, not in its place) adds the lost time,
+        # about 100 ms for every second of this loss, 600 ms by the second reading.
+        allowed = 20.0 + max(0.0, m.moved_ms) + m.largest_jump_ms
         print(f"audio loss: jumps in every measurement; latency growth {drift:.1f} ms checked")
-        assert m.latency_after - m.latency_before < 20.0 + max(0.0, m.moved_ms), summary
+        assert m.latency_after - m.latency_before < allowed, summary
     live.check()
 
 
