@@ -16,7 +16,7 @@
 import { WORKLET_NAME, WORKLET_SOURCE } from "./audio_worklet";
 import { ArrivalBound } from "./arrival_bound";
 import { wallUs } from "./clock";
-import { Window } from "./stats";
+import { type AudioSync, Window } from "./stats";
 import { VideoFollow } from "./video_follow";
 
 export interface AudioRendition {
@@ -215,7 +215,7 @@ export class AudioPlayer {
 	}
 
 	/** The sync target's parts (ms, page time minus pts): for the stats and the tests. */
-	syncParts(): { videoMs?: number; arrivalMs?: number; aheadMs?: number; targetMs?: number; offsetFrames?: number; contextMs: number } {
+	syncParts(): AudioSync {
 		return {
 			videoMs: this.#video.videoMs,
 			arrivalMs: this.#arrivals.bound(),

@@ -104,6 +104,17 @@ export class StageLatency {
 
 type Summary = Record<string, { p50?: number; p95?: number; n: number; samples: number[] }>;
 
+/** What the audio player's lip sync is made of (ms, and the playback offset in output
+ * frames): defined here, below the player, so that the stats need not import it. */
+export interface AudioSync {
+	videoMs?: number;
+	arrivalMs?: number;
+	aheadMs?: number;
+	targetMs?: number;
+	offsetFrames?: number;
+	contextMs: number;
+}
+
 /** What the player shows in its overlay and hands to the end-to-end tests (window.upcast). */
 export interface Stats {
 	status: string;
@@ -159,7 +170,7 @@ export interface Stats {
 	/** Per stage, in ms: render ... publish (server), network, decode, present, total. */
 	latency: Summary;
 	/** The audio path: packets received, decoded, what the worklet holds and misses. */
-	audio: { enabled: boolean; running: boolean; muted: boolean; volume: number; packets: number; decoded: number; bufferedMs: number; underrunFrames: number; concealedFrames: number; decoderErrors: number; decoderRestarts: number; malformed: number; sync?: ReturnType<import("./audio").AudioPlayer["syncParts"]>; videoHeld: number; videoHeldMeanMs: number };
+	audio: { enabled: boolean; running: boolean; muted: boolean; volume: number; packets: number; decoded: number; bufferedMs: number; underrunFrames: number; concealedFrames: number; decoderErrors: number; decoderRestarts: number; malformed: number; sync?: AudioSync; videoHeld: number; videoHeldMeanMs: number };
 	/** Key press -> first frame showing it, ms. */
 	inputToPhoton: { p50?: number; p95?: number; samples: number[] };
 	errors: string[];
