@@ -1,6 +1,7 @@
-"""Markdown reference of the pydantic configuration models, for the README.
+"""Markdown reference of the pydantic configuration models, for docs/configuration.md.
 
-``python -m server.config_doc`` prints it; a test keeps README.md in step.
+``python -m server.config_doc`` prints it; tests/test_readme.py keeps the block in
+docs/configuration.md in step with the models.
 """
 
 from __future__ import annotations

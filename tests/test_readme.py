@@ -1,4 +1,4 @@
-"""README.md stays true: its config reference and its two commands."""
+"""README.md and the manual stay true: the config reference and the two commands."""
 
 from __future__ import annotations
 
@@ -8,13 +8,16 @@ from server.config_doc import markdown
 
 ROOT = Path(__file__).resolve().parent.parent
 README = (ROOT / "README.md").read_text()
+CONFIGURATION = (ROOT / "docs" / "configuration.md").read_text()
 
 
 def test_config_reference_matches_the_models() -> None:
-    begin = README.index("<!-- config:begin")
-    start = README.index("\n", begin) + 1
-    end = README.index("<!-- config:end -->")
-    assert README[start:end] == markdown(), "regenerate with: python -m server.config_doc"
+    begin = CONFIGURATION.index("<!-- config:begin")
+    start = CONFIGURATION.index("\n", begin) + 1
+    end = CONFIGURATION.index("<!-- config:end -->")
+    assert CONFIGURATION[start:end] == markdown(), (
+        "regenerate the block in docs/configuration.md with: python -m server.config_doc"
+    )
 
 
 def test_the_two_commands_are_documented_and_ci_runs_the_test_one() -> None:
@@ -41,6 +44,7 @@ def test_one_url_parameter_names_the_broadcast_and_the_alias_is_said() -> None:
     assert "`name` is accepted as an alias" in README
     docs = [README, (ROOT / "deploy" / "README.md").read_text()]
     docs.append((ROOT / "docker-compose.yml").read_text())
+    docs += [page.read_text() for page in sorted((ROOT / "docs").rglob("*.md"))]
     for text in docs:
         for line in text.splitlines():
             if "localhost:" in line and "?" in line:
