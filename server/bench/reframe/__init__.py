@@ -1,0 +1,1 @@
+"""``upcast bench reframe``: ReFrame layer caching on the neural upscaler, and its tables."""
