@@ -40,7 +40,7 @@ RUN chmod 0755 /usr/local/bin/upcast-healthcheck && useradd --system --uid 10001
 # site-packages is root's. Its own folder, given to the upcast user.
 ENV NUMBA_CACHE_DIR=/var/cache/numba
 # Compile the numba CPU kernels into that cache now, not on the first frame of a stream.
-RUN python -m upscalers.warm_kernels && chown -R upcast /var/cache/numba
+RUN python -m upscalers.kernels.warm && chown -R upcast /var/cache/numba
 USER upcast
 # Status/metrics HTTP (GET /sessions, /metrics, /healthz).
 EXPOSE 4444/tcp

@@ -39,7 +39,8 @@ import yaml  # type: ignore[import-untyped]
 from playwright.sync_api import ConsoleMessage, sync_playwright
 from playwright.sync_api import TimeoutError as PlaywrightTimeout
 
-from server.bench.snapshots import (
+from server.ops.browser_paths import CHROMIUM, CHROMIUM_ARGS
+from server.serve.snapshots import (
     Thumb,
     ThumbSource,
     decode_data_url,
@@ -47,7 +48,6 @@ from server.bench.snapshots import (
     snapshot_psnr,
     thumbnail,
 )
-from server.ops.browser_paths import CHROMIUM, CHROMIUM_ARGS
 
 ROOT = Path(__file__).resolve().parents[1]
 PROMETHEUS = ROOT / "deploy" / "prometheus" / "prometheus.yml"

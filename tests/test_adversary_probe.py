@@ -13,8 +13,8 @@ import asyncio
 
 import pytest
 
-from server.bench.adversary_client import MAX_VARINT, Target, count_still_served
-from server.bench.adversary_moq import open_session
+from server.bench.adversary.client import MAX_VARINT, Target, count_still_served
+from server.bench.adversary.moq import open_session
 from server.moq.messages import StreamType
 from server.moq.wire import encode_varint
 from server.quic.certs import CertBundle, generate_cert

@@ -1,4 +1,4 @@
-"""Back-projection of the temporal history (upscalers/back_projection.py): the footprint
+"""Back-projection of the temporal history (upscalers/temporal/back_projection.py): the footprint
 tables, and that its steps recover what the render pixels' boxes average away."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from server.game.render.transforms import jitter_offset, jitter_phase_count
-from upscalers.back_projection import (
+from upscalers.temporal.back_projection import (
     AxisTaps,
     axis_taps,
     back_project,

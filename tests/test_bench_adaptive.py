@@ -1,12 +1,12 @@
 """``upcast bench adaptive``'s arithmetic: per-second bins, recovery time, the log lines
-it counts as switches, and the render size of a fixed setting (server/bench/adaptive.py).
+it counts as switches, and the render size of a fixed setting (server/bench/adaptive/bench.py).
 The benchmark itself runs ``upcast serve`` for minutes: it is run by hand, not here."""
 
 from __future__ import annotations
 
 import pytest
 
-from server.bench.adaptive import (
+from server.bench.adaptive.bench import (
     _back_at,
     _bins,
     _changes,

@@ -9,7 +9,7 @@ import json
 import numpy as np
 import numpy.typing as npt
 
-from server.bench.adaptive_picture import (
+from server.bench.adaptive.picture import (
     DecodeCounts,
     RecordedStream,
     StreamRecorder,

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import pytest
 
-from server.bench.network_page import ShownFrames, counter_deltas
-from server.bench.network_series import RateSeries, capacity_bps
+from server.bench.network.page import ShownFrames, counter_deltas
+from server.bench.network.series import RateSeries, capacity_bps
 from server.cli import main
 from server.net import PROFILES
 

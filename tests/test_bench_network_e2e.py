@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from server.bench.network_table import table
+from server.bench.network.table import table
 from server.cli import main
 from server.ops.browser_paths import WEB_ROOT
 from tests.chromium import browser_marks

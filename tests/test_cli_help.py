@@ -8,6 +8,7 @@ import importlib
 import pytest
 
 from server.cli import COMMANDS, build_parser
+from server.commands.dispatch import choice_module
 from server.commands.help_format import DefaultsHelpFormatter
 
 
@@ -40,14 +41,21 @@ def test_every_command_shows_its_defaults(command: str) -> None:
     assert _missing_defaults(sub) == []
 
 
-@pytest.mark.parametrize(("command", "table"), [("bench", "BENCHMARKS"), ("eval", "EVALUATIONS")])
-def test_every_bench_and_eval_shows_its_defaults(command: str, table: str) -> None:
+@pytest.mark.parametrize(
+    ("command", "table", "modules"),
+    [("bench", "BENCHMARKS", "BENCH_MODULES"), ("eval", "EVALUATIONS", None)],
+)
+def test_every_bench_and_eval_shows_its_defaults(
+    command: str, table: str, modules: str | None
+) -> None:
     package = f"server.{command}"
-    choices: dict[str, str] = getattr(importlib.import_module(f"server.commands.{command}"), table)
+    commands = importlib.import_module(f"server.commands.{command}")
+    choices: dict[str, str] = getattr(commands, table)
+    where: dict[str, str] | None = getattr(commands, modules) if modules else None
     missing = {}
     for name in choices:
         sub = argparse.ArgumentParser(prog=name, formatter_class=DefaultsHelpFormatter)
-        importlib.import_module(f"{package}.{name}").add_arguments(sub)
+        choice_module(package, name, where).add_arguments(sub)
         missing[name] = _missing_defaults(sub)
     assert {name: opts for name, opts in missing.items() if opts} == {}
 

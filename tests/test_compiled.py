@@ -13,7 +13,7 @@ import pytest
 from server.frames.frame import Size
 from tests.test_fsr1 import make_frame
 from upscalers import registry
-from upscalers.fsr1 import EasuRcasUpscaler
+from upscalers.fsr1.upscaler import EasuRcasUpscaler
 from upscalers.host import UpscalerHost
 
 pytestmark = pytest.mark.slow

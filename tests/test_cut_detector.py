@@ -13,9 +13,9 @@ from server.game.render.transforms import jitter_offset
 from tests.test_real_content import _photo
 from upscalers import metrics
 from upscalers.api import upscale_sequence
-from upscalers.cut_detector import CutDetector
 from upscalers.host import UpscalerHost
 from upscalers.output import to_uint8
+from upscalers.temporal.cut_detector import CutDetector
 
 
 def _picture(seed: int, h: int = 270, w: int = 480) -> np.ndarray:

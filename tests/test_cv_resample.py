@@ -11,7 +11,7 @@ import torch.nn.functional as F
 from server.frames.frame import Camera, FrameMeta, RenderFrame, Size
 from upscalers import names, registry
 from upscalers.output import to_uint8
-from upscalers.resample import BilinearUpscaler, NearestUpscaler, color_as_nchw
+from upscalers.spatial.resample import BilinearUpscaler, NearestUpscaler, color_as_nchw
 
 CV_METHODS = {
     "cv_cubic": cv2.INTER_CUBIC,

@@ -16,8 +16,8 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
-from server.bench.snapshots import THUMB, FrameThumbs, page_thumbnail, thumbnail
 from server.serve.frame_tap import FrameTapServer, start_frame_tap
+from server.serve.snapshots import THUMB, FrameThumbs, page_thumbnail, thumbnail
 
 
 def get(port: int, path: str) -> tuple[int, bytes]:
@@ -154,7 +154,7 @@ def test_a_smaller_encoded_picture_is_compared_at_its_own_size() -> None:
     the tap's; the comparison is made at the smaller size, either way round."""
     import cv2
 
-    from server.bench.snapshots import psnr
+    from server.serve.snapshots import psnr
 
     y, x = np.mgrid[0:720, 0:1280].astype(np.float32)
     frame = np.stack([128 + 60 * np.sin(x / 40), 128 + 60 * np.cos(y / 30), 0 * x + 90], -1)

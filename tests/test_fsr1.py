@@ -15,11 +15,11 @@ import torch.nn.functional as F
 
 from server.frames.frame import Camera, FrameMeta, RenderFrame, Size
 from upscalers.base import Upscaler
-from upscalers.fsr1 import EasuRcasUpscaler, EasuUpscaler
-from upscalers.fsr1_easu import Easu
-from upscalers.fsr1_rcas import RCAS_LIMIT, Rcas
-from upscalers.lanczos import Lanczos2Upscaler
+from upscalers.fsr1.easu import Easu
+from upscalers.fsr1.rcas import RCAS_LIMIT, Rcas
+from upscalers.fsr1.upscaler import EasuRcasUpscaler, EasuUpscaler
 from upscalers.output import to_uint8
+from upscalers.spatial.lanczos import Lanczos2Upscaler
 
 # The float results of the torch path (the reference and the CUDA path); the numba CPU
 # kernels, which return 8-bit results, are compared with it in test_fsr1_cpu.py.

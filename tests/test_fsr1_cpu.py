@@ -11,7 +11,7 @@ import torch
 from server.eval.upscalers import _render_frames
 from server.frames.frame import Size
 from tests.test_fsr1 import make_frame, random_color
-from upscalers.fsr1 import EasuRcasUpscaler, EasuUpscaler
+from upscalers.fsr1.upscaler import EasuRcasUpscaler, EasuUpscaler
 from upscalers.output import to_uint8
 
 FSR = [EasuUpscaler, EasuRcasUpscaler]

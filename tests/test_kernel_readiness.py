@@ -10,12 +10,12 @@ from pathlib import Path
 import pytest
 
 from server.frames.frame import Size
-from upscalers import kernel_readiness
 from upscalers.framegen.mpe import MeshProjectionPredictor
-from upscalers.fsr1 import EasuRcasUpscaler, EasuUpscaler
-from upscalers.kernel_readiness import ENV_VAR, kernels_ready
-from upscalers.temporal import TemporalUpscaler
-from upscalers.warm_kernels import _frame
+from upscalers.fsr1.upscaler import EasuRcasUpscaler, EasuUpscaler
+from upscalers.kernels import readiness as kernel_readiness
+from upscalers.kernels.readiness import ENV_VAR, kernels_ready
+from upscalers.kernels.warm import _frame
+from upscalers.temporal.upscaler import TemporalUpscaler
 
 
 @pytest.fixture

@@ -25,7 +25,7 @@ from server.eval.real_content_sequences import build_sequence
 from server.frames.frame import Size
 from server.game.render.transforms import jitter_offset
 from upscalers import metrics
-from upscalers.temporal_params import TemporalParams
+from upscalers.temporal.params import TemporalParams
 
 
 def _texture(seed: int, shape: tuple[int, int]) -> np.ndarray:

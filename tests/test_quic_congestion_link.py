@@ -12,7 +12,7 @@ import asyncio
 
 import pytest
 
-from server.bench.congestion import LinkSpec, measure
+from server.bench.network.congestion import LinkSpec, measure
 from server.quic.congestion_media import NAME
 
 LINK = LinkSpec(rate_mbit=8.0, rtt_ms=30.0, loss=0.01)

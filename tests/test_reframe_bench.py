@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from server.bench import reframe
-from server.bench.reframe_tables import budget_comparison, must_show_checks
+from server.bench.reframe import bench as reframe
+from server.bench.reframe.tables import budget_comparison, must_show_checks
 from tests.cache_toys import ToyNested, ToyNeuralUpscaler, ToyUNet
 
 

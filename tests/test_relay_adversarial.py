@@ -2,7 +2,7 @@
 
 Each test runs one event loop: a Relay on port 0 (tests/relay_harness.py), a publisher
 streaming 30 fps, three good viewers from 127.0.0.1, and one scenario of
-server/bench/adversary_scenarios.py attacking from 127.0.0.2 for a second or two. It
+server/bench/adversary/scenarios.py attacking from 127.0.0.2 for a second or two. It
 asserts what the issue "no unauthenticated client can starve the viewers" asks: the
 viewers keep >= 60 % of the frames they got just before the attack, the attacker is
 closed (floods: within 1 s of crossing the limit) or refused, the refusal is counted,
@@ -26,7 +26,14 @@ from hypothesis import strategies as st
 from server.auth import Authorizer, generate_key, load_key
 from server.auth.keys import AuthKey
 from server.auth.minting import session_tokens
-from server.bench.adversary_client import (
+from server.bench.adversary.attack_types import (
+    GUARD,
+    SKIPPED,
+    AttackContext,
+    AttackResult,
+    Expectation,
+)
+from server.bench.adversary.client import (
     FRAME_HEADERS,
     FRAME_SETTINGS,
     MAX_VARINT,
@@ -36,15 +43,8 @@ from server.bench.adversary_client import (
     frame_header,
     open_attack,
 )
-from server.bench.adversary_h3 import GREASE_FRAME, STREAM_KINDS, send_garbage
-from server.bench.adversary_scenarios import SCENARIOS
-from server.bench.adversary_types import (
-    GUARD,
-    SKIPPED,
-    AttackContext,
-    AttackResult,
-    Expectation,
-)
+from server.bench.adversary.h3 import GREASE_FRAME, STREAM_KINDS, send_garbage
+from server.bench.adversary.scenarios import SCENARIOS
 from server.moq.errors import ErrorCode
 from server.quic.certs import CertBundle, generate_cert
 from server.quic.connection import IDLE_TIMEOUT_S

@@ -13,8 +13,8 @@ from server.game.render.renderer import Renderer, RenderTargets
 from server.game.render.transforms import jitter_offset, jitter_phase_count
 from upscalers import metrics, registry
 from upscalers.output import to_uint8
-from upscalers.temporal import TemporalUpscaler
-from upscalers.temporal_params import TemporalParams
+from upscalers.temporal.params import TemporalParams
+from upscalers.temporal.upscaler import TemporalUpscaler
 
 RENDER = Size(96, 54)
 DISPLAY = Size(192, 108)

@@ -22,8 +22,8 @@ from server.eval.upscalers import _render_frames
 from server.frames.frame import FrameFlags, RenderFrame, Size
 from server.game.render.transforms import jitter_phase_count
 from tests.test_temporal import DISPLAY, RENDER, pattern_frame, poisoned
-from upscalers.temporal import TemporalUpscaler
-from upscalers.temporal_params import TemporalParams
+from upscalers.temporal.params import TemporalParams
+from upscalers.temporal.upscaler import TemporalUpscaler
 
 MAX_U8_DIFF = 1
 MAX_MEAN_U8_DIFF = 0.01
@@ -217,8 +217,8 @@ def test_results_the_caller_keeps_are_not_overwritten() -> None:
 def test_the_colour_box_kernel_is_the_torch_box(h: int, w: int) -> None:
     """The separable uint8 3x3 min / max behind the output's clamp, at the edges and on
     images one pixel wide or high."""
-    from upscalers import temporal_cpu_kernels as kernels
-    from upscalers import temporal_ops as ops
+    from upscalers.temporal import cpu_kernels as kernels
+    from upscalers.temporal import ops
 
     color = np.random.default_rng(h * 100 + w).integers(0, 256, (h, w, 3), dtype=np.uint8)
     lo, hi = np.zeros_like(color), np.zeros_like(color)

@@ -24,8 +24,8 @@ from server.game.render.transforms import jitter_offset, jitter_phase_count
 from tests.test_temporal import unit
 from upscalers import metrics, registry
 from upscalers.output import to_uint8
-from upscalers.temporal import TemporalUpscaler
-from upscalers.temporal_params import TemporalParams
+from upscalers.temporal.params import TemporalParams
+from upscalers.temporal.upscaler import TemporalUpscaler
 
 BACKENDS = ["torch", "numba"]
 RENDER = Size(48, 32)
@@ -208,7 +208,7 @@ def test_frames_after_a_reset_are_as_good_as_a_spatial_upscaler(backend: str) ->
 def test_a_reset_frame_is_the_spatial_start_unsharpened(backend: str) -> None:
     """The reset frame's output is its history as it is (EASU's start blended with the
     samples); from the next frame on RCAS sharpens the output."""
-    from upscalers import temporal_ops as ops
+    from upscalers.temporal import ops
 
     src = _photo()
     up = TemporalUpscaler(device="cpu", backend=backend)  # type: ignore[arg-type]

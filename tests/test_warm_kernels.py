@@ -1,12 +1,13 @@
-"""``python -m upscalers.warm_kernels``: every CPU kernel a stream needs is compiled (or
+"""``python -m upscalers.kernels.warm``: every CPU kernel a stream needs is compiled (or
 loaded from numba's cache) before the first frame, for ring views and plain arrays."""
 
 from __future__ import annotations
 
 import pytest
 
-from upscalers import fsr1_cpu_kernels, temporal_cpu_kernels
-from upscalers.warm_kernels import main
+from upscalers.fsr1 import cpu_kernels as fsr1_cpu_kernels
+from upscalers.kernels.warm import main
+from upscalers.temporal import cpu_kernels as temporal_cpu_kernels
 
 
 def test_warm_up_compiles_the_kernels_a_worker_calls(capsys: pytest.CaptureFixture[str]) -> None:

@@ -6,7 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from server.bench import capture as bench
+from server.bench.app import capture as bench
 from server.game.x11.grabbers import GRABBERS
 
 

@@ -1,5 +1,10 @@
 """Upscalers: one interface (``base.Upscaler``), one registry, and the API for users.
 
+One package per family: ``spatial`` (resamplers and OpenCV's baselines), ``fsr1``,
+``temporal``, ``neural``, ``cache`` (layer caching), ``framegen`` (frame prediction),
+each with its torch reference, CPU kernels and params; ``kernels`` compiles and warms
+them. At the top: the interface, the registry, the host, the API, sanitizing.
+
 ``upscale_image`` and ``upscale_sequence`` live in ``upscalers/api.py`` and are
 imported on first use: importing this package must not pull torch, because the
 relay's base install imports ``upscalers.names`` (standard library only).

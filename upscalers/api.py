@@ -98,7 +98,7 @@ def upscale_sequence(
     same step follows their aliasing, so say True only when it is so.
 
     ``detect_cuts``: a temporal method starts its history afresh where the picture
-    changes as a whole (a scene cut, ``upscalers/cut_detector.py``): without that it
+    changes as a whole (a scene cut, ``upscalers/temporal/cut_detector.py``): without that it
     blends the picture before the cut into the frames after it. False trusts the
     sequence to have no cuts.
 

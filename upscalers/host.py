@@ -20,8 +20,8 @@ from server.frames.frame import FrameFlags, RenderFrame, Size
 from upscalers import registry
 from upscalers.base import Upscaler
 from upscalers.cache.policies import make_policy
-from upscalers.cut_detector import CutDetector
 from upscalers.sanitize import SanitizeReport, sanitize_frame
+from upscalers.temporal.cut_detector import CutDetector
 
 log = logging.getLogger(__name__)
 
@@ -76,7 +76,7 @@ class UpscalerHost:
         # Set by the last frame: its source gave colour only (no depth, motion, jitter).
         self.color_only = False
         # Scene cuts the frames do not flag, found before a temporal method blends
-        # across them (upscalers/cut_detector.py); None: trust the RESET flag alone.
+        # across them (upscalers/temporal/cut_detector.py); None: trust the RESET flag alone.
         self._cuts = CutDetector() if detect_cuts else None
         self.cuts_found = 0
 

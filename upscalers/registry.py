@@ -8,12 +8,12 @@ from typing import Any
 
 from upscalers.base import Upscaler
 from upscalers.cache.unet_cached import CachedUNetUpscaler
-from upscalers.cv_resample import CvAreaUpscaler, CvCubicUpscaler, CvLanczos4Upscaler
-from upscalers.fsr1 import EasuRcasUpscaler, EasuUpscaler
-from upscalers.lanczos import Lanczos2Upscaler
+from upscalers.fsr1.upscaler import EasuRcasUpscaler, EasuUpscaler
 from upscalers.neural.upscaler import UNetPlusPlusUpscaler, UNetUpscaler
-from upscalers.resample import BicubicUpscaler, BilinearUpscaler, NearestUpscaler
-from upscalers.temporal import TemporalUpscaler
+from upscalers.spatial.cv_resample import CvAreaUpscaler, CvCubicUpscaler, CvLanczos4Upscaler
+from upscalers.spatial.lanczos import Lanczos2Upscaler
+from upscalers.spatial.resample import BicubicUpscaler, BilinearUpscaler, NearestUpscaler
+from upscalers.temporal.upscaler import TemporalUpscaler
 
 _REGISTRY: dict[str, Callable[..., Upscaler]] = {
     cls.name: cls

@@ -18,7 +18,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from server.bench.report import BenchReport
+from server.ops.report import BenchReport
 
 _CHILD = "from server.bench.compile_start import child; child({!r}, {!r}, {!r}, {})"
 

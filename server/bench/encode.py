@@ -26,11 +26,11 @@ import numpy.typing as npt
 from av.video.codeccontext import VideoCodecContext
 from PIL import Image
 
-from server.bench.report import BenchReport, summarize_ms
 from server.frames.frame import Size
 from server.media.cmaf import MOOF_SIZE
 from server.media.cmaf_read import parse_fragment
 from server.media.encode import EncodedFrame, EncoderConfig, VideoEncoder
+from server.ops.report import BenchReport, summarize_ms
 
 U8Image = npt.NDArray[np.uint8]
 PHOTOS = ("coffee.png", "astronaut.png", "chelsea.png", "brick.png", "rocket.jpg", "grass.png")

@@ -36,11 +36,11 @@ import numpy.typing as npt
 import torch
 import torch.nn.functional as F
 
-from server.bench.report import BenchReport, summarize_ms
 from server.frames.frame import Size
 from server.game.render.renderer import Renderer, RenderTargets
 from server.media.encode import EncodedFrame, EncoderConfig, VideoEncoder, encoded_size
 from server.ops.progress import elapsed_and_left, progress
+from server.ops.report import BenchReport, summarize_ms
 from upscalers import metrics
 from upscalers.host import UpscalerHost
 from upscalers.output import to_uint8

@@ -105,10 +105,10 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
     import torch
 
-    from server.bench.report import BenchReport, summarize_ms
     from server.frames.frame import RenderFrame, Size
     from server.game.render.renderer import Renderer, RenderTargets
     from server.game.render.scenes import SCENES, make_scene, parse_scene_list
+    from server.ops.report import BenchReport, summarize_ms
     from upscalers import metrics
 
     size = Size.parse(args.size)

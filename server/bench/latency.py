@@ -33,10 +33,10 @@ import numpy.typing as npt
 from server.auth import generate_key, load_key
 from server.auth.minting import session_tokens
 from server.bench.page_stats import read_latency, read_stats
-from server.bench.report import BenchReport
 from server.frames.frame import Size
 from server.game.sounds import SoundSource
 from server.ops.browser_paths import CHROMIUM, CHROMIUM_ARGS, WEB_ROOT
+from server.ops.report import BenchReport
 from server.relay.process import RelayEndpoint, RelayProcess
 from server.session.runner import StreamingSession, StreamSettings
 from server.stack.local import LocalStack, SessionConfig

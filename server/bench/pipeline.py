@@ -17,10 +17,10 @@ from typing import Any
 
 import numpy as np
 
-from server.bench.report import BenchReport, summarize_ms
 from server.frames.frame import FrameFlags
 from server.frames.ring import FrameRing
 from server.frames.timing import STAGE_COUNT, STAGE_SPANS, Stage
+from server.ops.report import BenchReport, summarize_ms
 from server.stack.local import LocalStack, SessionConfig
 
 

@@ -21,10 +21,10 @@ def run(args: argparse.Namespace) -> int:
 
     import torch
 
-    from server.bench.report import BenchReport, summarize_ms
     from server.frames.frame import Size
     from server.game.render.renderer import Renderer, RenderTargets
     from server.game.render.scenes import parse_scene_list
+    from server.ops.report import BenchReport, summarize_ms
 
     size = Size.parse(args.size)
     scenes = parse_scene_list(args.scenes)

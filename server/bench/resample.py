@@ -11,7 +11,7 @@ rounds, each round's ratio reported.
 
 Pairs (``+torch``: the method's torch path, what it ran before issue 19): bilinear
 against OpenCV's linear, nearest-exact against OpenCV's exact nearest (the CPU
-paths now take them where they match, see ``upscalers/resample.py``), bicubic
+paths now take them where they match, see ``upscalers/spatial/resample.py``), bicubic
 (Catmull-Rom) against OpenCV's cubic (a = -0.75), lanczos2 against OpenCV's
 Lanczos-4.
 """
@@ -28,13 +28,13 @@ import numpy as np
 import numpy.typing as npt
 import torch
 
-from server.bench.report import BenchReport, summarize_ms
 from server.frames.frame import RenderFrame, Size
 from server.game.render.renderer import Renderer, RenderTargets
 from server.ops.cpu_threads import set_cpu_threads
+from server.ops.report import BenchReport, summarize_ms
 from upscalers import registry
-from upscalers.cv_resample import cv_resize
 from upscalers.output import to_uint8
+from upscalers.spatial.cv_resample import cv_resize
 
 Resample = Callable[[RenderFrame, Size], torch.Tensor]
 # (ours, the library's): the first is what the project shipped before issue 19.

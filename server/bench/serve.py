@@ -28,10 +28,10 @@ from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
-from server.bench.report import BenchReport
 from server.media.catalog import VIDEO_TRACK
 from server.moq.events import Event, FrameReceived
 from server.ops.process import stop_child
+from server.ops.report import BenchReport
 from server.quic.moq_link import MoqLink, connect_moq
 from server.session.broadcast import CATALOG_TRACK
 

@@ -19,10 +19,10 @@ from typing import Any
 
 import numpy as np
 
-from server.bench.report import BenchReport, summarize_ms
 from server.frames.frame import Size
 from server.frames.ring import DISPLAY_PLANES, RENDER_PLANES, FrameRing, PlaneSpec
 from server.frames.timing import Stage
+from server.ops.report import BenchReport, summarize_ms
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -31,10 +31,22 @@ BENCHMARKS: dict[str, str] = {
     "goodput and chunks on time for a video-like sender",
 }
 
+# Benchmarks that live in a family's package (server/bench/<family>/), by name; the
+# others are server/bench/<name>.py.
+BENCH_MODULES: dict[str, str] = {
+    "adaptive": "adaptive.bench",
+    "adversary": "adversary.bench",
+    "app": "app.bench",
+    "capture": "app.capture",
+    "congestion": "network.congestion",
+    "network": "network.bench",
+    "reframe": "reframe.bench",
+}
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_choice_arguments(parser, "benchmark", BENCHMARKS)
 
 
 def run(args: argparse.Namespace) -> int:
-    return run_choice("bench", "server.bench", BENCHMARKS, args)
+    return run_choice("bench", "server.bench", BENCHMARKS, args, BENCH_MODULES)

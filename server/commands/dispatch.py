@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+from types import ModuleType
 
 from server.commands.help_format import DefaultsHelpFormatter
 
@@ -24,11 +25,21 @@ def add_choice_arguments(
     parser.add_argument("options", nargs=argparse.REMAINDER, help="its options (NAME --help)")
 
 
+def choice_module(package: str, name: str, modules: dict[str, str] | None = None) -> ModuleType:
+    """Choice NAME's module: ``package.NAME``, or ``package.modules[NAME]`` for one that
+    lives in a family's package."""
+    return importlib.import_module(f"{package}.{(modules or {}).get(name, name)}")
+
+
 def run_choice(
-    command: str, package: str, choices: dict[str, str], args: argparse.Namespace
+    command: str,
+    package: str,
+    choices: dict[str, str],
+    args: argparse.Namespace,
+    modules: dict[str, str] | None = None,
 ) -> int:
     name: str = args.choice
-    module = importlib.import_module(f"{package}.{name}")
+    module = choice_module(package, name, modules)
     sub = argparse.ArgumentParser(
         prog=f"upcast {command} {name}",
         description=choices[name],

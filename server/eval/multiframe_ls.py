@@ -45,8 +45,8 @@ from server.eval.real_content_sources import image_source
 from server.frames.frame import Size
 from server.ops.progress import elapsed_and_left, progress
 from upscalers import metrics
-from upscalers import temporal_ops as ops
-from upscalers.temporal_params import TemporalParams
+from upscalers.temporal import ops
+from upscalers.temporal.params import TemporalParams
 
 F32 = npt.NDArray[np.float32]
 U8 = npt.NDArray[np.uint8]

@@ -26,7 +26,6 @@ import numpy as np
 import numpy.typing as npt
 from PIL import Image
 
-from server.bench.report import summarize_ms
 from server.eval.methods import MethodSpec
 from server.eval.real_content_sequences import (
     KINDS,
@@ -38,6 +37,7 @@ from server.eval.real_content_sequences import (
 from server.eval.real_content_sources import image_source
 from server.frames.frame import Size
 from server.ops.progress import elapsed_and_left, progress
+from server.ops.report import summarize_ms
 from upscalers import metrics
 from upscalers.host import UpscalerHost
 from upscalers.output import to_uint8

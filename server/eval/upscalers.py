@@ -35,7 +35,6 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from server.bench.report import BenchReport, summarize_ms
 from server.eval.methods import (
     COMPILED,
     EAGER_TORCH,
@@ -52,6 +51,7 @@ from server.game.render.renderer import Renderer, RenderTargets
 from server.game.render.scenes import DEFAULT_SCENE_NAMES, make_scene, parse_scene_list
 from server.ops.cpu_threads import set_cpu_threads
 from server.ops.progress import elapsed_and_left, progress
+from server.ops.report import BenchReport, summarize_ms
 from upscalers import metrics
 from upscalers.host import UpscalerHost
 from upscalers.output import to_uint8

@@ -73,7 +73,7 @@ class FrameFlags(IntFlag):
     # Each colour sample is the average of the picture over its pixel's footprint (a
     # photograph or a video downscaled by area, a supersampled render), not a point
     # sample as a game's renderer takes. A temporal method may then undo that box
-    # faster (upscalers/temporal_params.py, ``area_precondition``): on point samples the
+    # faster (upscalers/temporal/params.py, ``area_precondition``): on point samples the
     # same step follows their aliasing.
     AREA_SAMPLES = 8
 

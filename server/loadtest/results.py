@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from server.bench.report import BenchReport
+from server.ops.report import BenchReport
 
 from .run import LoadResult
 from .viewer_stats import ViewerStats, percentiles

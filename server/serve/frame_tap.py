@@ -1,7 +1,7 @@
 """``upcast serve --frame-tap-port``: a session's own frames, as it encoded them, over HTTP.
 
 Off by default: a debugging and testing aid. When on, the session keeps box
-thumbnails (1/4 size, server/bench/snapshots.py) of its last frames before
+thumbnails (1/4 size, server/serve/snapshots.py) of its last frames before
 encoding, by frame id, and answers
 
 - ``GET /frames``: ``{"first": ID, "last": ID, "count": N, "factor": 4}`` (JSON);
@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from server.bench.snapshots import THUMB, FrameThumbs
+from server.serve.snapshots import THUMB, FrameThumbs
 
 log = logging.getLogger(__name__)
 

@@ -73,9 +73,9 @@ async def run_game_session(
     / TimeoutError with a message for a person)."""
     from prometheus_client import CollectorRegistry, start_http_server
 
-    from server.bench.snapshots import FrameThumbs
     from server.frames.frame import Size
     from server.serve.frame_tap import start_frame_tap
+    from server.serve.snapshots import FrameThumbs
     from server.serve.status_reporter import StatusReporter
     from server.session.pulse_monitor import PulseMonitor
     from server.session.runner import StreamingSession, StreamSettings

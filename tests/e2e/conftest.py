@@ -16,7 +16,8 @@ from typing import Any
 import pytest
 
 from server.bench.latency import LiveStack
-from server.bench.snapshots import (
+from server.ops.browser_paths import WEB_ROOT
+from server.serve.snapshots import (
     FrameThumbs,
     Thumb,
     decode_data_url,
@@ -24,11 +25,10 @@ from server.bench.snapshots import (
     psnr,
     thumbnail,
 )
-from server.ops.browser_paths import WEB_ROOT
 from server.stack.local import SessionConfig
 from tests.chromium import browser_marks
 
-# Re-exported for the tests (thumbnails and PSNR live in server/bench/snapshots.py).
+# Re-exported for the tests (thumbnails and PSNR live in server/serve/snapshots.py).
 __all__ = ["FrameTap", "Live", "Thumb", "decode_data_url", "page_thumbnail", "psnr", "thumbnail"]
 
 RENDER = "320x180"

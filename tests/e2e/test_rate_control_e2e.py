@@ -21,7 +21,7 @@ import time
 import pytest
 
 from server.bench.latency import LiveStack
-from server.bench.network_link import EmulatorProcess
+from server.bench.network.link import EmulatorProcess
 from server.loadtest.plan import RunPlan
 from server.loadtest.viewer import ViewerConfig, WorkerResult, run_viewers
 from server.net import LinkProfile, Schedule

@@ -22,9 +22,9 @@ from typing import Any
 import numpy as np
 import pytest
 
-from server.bench.app_presets import PRESETS, PresetError
+from server.bench.app.presets import PRESETS, PresetError
 from server.bench.latency import LiveStack
-from server.bench.snapshots import snapshot_psnr
+from server.serve.snapshots import snapshot_psnr
 from server.stack.local import SessionConfig
 from tests.chromium import picture_point
 from tests.e2e.conftest import (

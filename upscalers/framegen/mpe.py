@@ -50,7 +50,7 @@ from upscalers.framegen.mesh import MeshOptions, build_mesh
 from upscalers.framegen.mpe_options import MpeOptions
 from upscalers.framegen.raster import rasterize
 from upscalers.framegen.sample import bilinear, inside, nearest_index, to_texture
-from upscalers.kernel_readiness import kernels_ready
+from upscalers.kernels.readiness import kernels_ready
 
 if TYPE_CHECKING:
     from upscalers.framegen.mpe_cpu import HostMeshProjection

@@ -17,8 +17,8 @@ import numpy as np
 import numpy.typing as npt
 import torch
 
-from upscalers import fsr1_cpu_kernels as kernels
-from upscalers.fsr1_easu import PAD, axis_map
+from upscalers.fsr1 import cpu_kernels as kernels
+from upscalers.fsr1.easu import PAD, axis_map
 
 log = logging.getLogger(__name__)
 

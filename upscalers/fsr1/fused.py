@@ -18,8 +18,8 @@ from __future__ import annotations
 
 import torch
 
-from upscalers.fsr1_easu import DIR_ZERO, PAD, TAP_ROWS, TINY
-from upscalers.fsr1_rcas import RCAS_LIMIT
+from upscalers.fsr1.easu import DIR_ZERO, PAD, TAP_ROWS, TINY
+from upscalers.fsr1.rcas import RCAS_LIMIT
 
 
 def easu_fused(

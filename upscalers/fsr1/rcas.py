@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import torch
 
-from upscalers.fsr1_easu import TINY, Buffers, band_rows
+from upscalers.fsr1.easu import TINY, Buffers, band_rows
 
 RCAS_LIMIT = 0.25 - 1.0 / 16.0
 # 1.5 stops below the strongest sharpening (FSR's sample uses 0.2). Chosen by the sweep

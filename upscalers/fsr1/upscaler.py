@@ -20,13 +20,13 @@ import torch
 
 from server.frames.frame import RenderFrame, Size
 from upscalers.base import BACKENDS, Backend, Upscaler, numba_can_run
-from upscalers.compiled import CompiledFunction
-from upscalers.fsr1_cpu import Fsr1Cpu, usable_input
-from upscalers.fsr1_easu import PAD, Easu, axis_map, replicate_pad_into
-from upscalers.fsr1_fused import easu_fused, easu_rcas_fused
-from upscalers.fsr1_rcas import DEFAULT_SHARPNESS, Rcas
-from upscalers.kernel_readiness import kernels_ready
-from upscalers.resample import color_as_nchw
+from upscalers.fsr1.cpu import Fsr1Cpu, usable_input
+from upscalers.fsr1.easu import PAD, Easu, axis_map, replicate_pad_into
+from upscalers.fsr1.fused import easu_fused, easu_rcas_fused
+from upscalers.fsr1.rcas import DEFAULT_SHARPNESS, Rcas
+from upscalers.kernels.compiled import CompiledFunction
+from upscalers.kernels.readiness import kernels_ready
+from upscalers.spatial.resample import color_as_nchw
 
 
 def frame_color(frame: RenderFrame, device: torch.device) -> torch.Tensor:

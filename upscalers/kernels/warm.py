@@ -18,7 +18,7 @@ numba compiles on one thread, so they compile in parallel processes, one per cor
 (``--jobs``): on a fresh 2-core clone, 83 s for all three beside a starting stack
 (temporal 79 s, MPE 44 s, FSR 1 35 s).
 
-    python -m upscalers.warm_kernels [--jobs N]
+    python -m upscalers.kernels.warm [--jobs N]
 """
 
 from __future__ import annotations
@@ -35,8 +35,8 @@ from dataclasses import replace
 import numpy as np
 
 from server.frames.frame import Camera, FrameFlags, FrameMeta, RenderFrame, Size
-from upscalers.fsr1 import EasuRcasUpscaler, EasuUpscaler
-from upscalers.temporal import TemporalUpscaler
+from upscalers.fsr1.upscaler import EasuRcasUpscaler, EasuUpscaler
+from upscalers.temporal.upscaler import TemporalUpscaler
 
 _RENDER = Size(24, 14)
 _DISPLAYS = (Size(48, 28), Size(36, 21))  # 2x (integer-scale kernels), 1.5x (the others)
@@ -122,7 +122,7 @@ def default_jobs() -> int:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m upscalers.warm_kernels",
+        prog="python -m upscalers.kernels.warm",
         description="Compile the numba CPU kernels (FSR 1, temporal, MPE) into numba's cache.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )

@@ -23,10 +23,10 @@ import torch
 import torch.nn.functional as F
 
 from server.frames.frame import RenderFrame, Size
-from upscalers import temporal_ops as ops
 from upscalers.base import Upscaler
 from upscalers.neural.features import FrameTensors, History, build_features
 from upscalers.neural.network import WEIGHTS_DIR, load_checkpoint, predict, with_memory_format
+from upscalers.temporal import ops
 
 
 def frame_tensors(frame: RenderFrame, device: torch.device, dtype: torch.dtype) -> FrameTensors:

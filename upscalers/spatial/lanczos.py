@@ -16,7 +16,7 @@ import torch
 
 from server.frames.frame import RenderFrame, Size
 from upscalers.base import Upscaler
-from upscalers.fsr1 import frame_color
+from upscalers.fsr1.upscaler import frame_color
 
 LOBES = 2
 

@@ -35,7 +35,7 @@ import torch.nn.functional as F
 
 from server.frames.frame import RenderFrame, Size
 from upscalers.base import Upscaler
-from upscalers.cv_resample import cv_resize
+from upscalers.spatial.cv_resample import cv_resize
 
 # "auto" takes the library resampler where it gives the same images faster; "torch"
 # keeps F.interpolate (the reference, and what the eval's METHOD+torch times).

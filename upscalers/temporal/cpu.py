@@ -26,19 +26,19 @@ import numpy.typing as npt
 import torch
 
 from server.frames.frame import FrameFlags, RenderFrame, Size
-from upscalers import fsr1_cpu_kernels as fsr1_kernels
-from upscalers import temporal_cpu_kernels as kernels
-from upscalers import temporal_ops as ops
-from upscalers.back_projection import (
+from upscalers.fsr1 import cpu_kernels as fsr1_kernels
+from upscalers.fsr1.easu import Easu
+from upscalers.temporal import cpu_kernels as kernels
+from upscalers.temporal import ops
+from upscalers.temporal.back_projection import (
     AxisTaps,
     Regular2x,
     cached_axis_taps,
     cached_regular_2x,
 )
-from upscalers.fsr1_easu import Easu
 
 if TYPE_CHECKING:
-    from upscalers.temporal_params import TemporalParams
+    from upscalers.temporal.params import TemporalParams
 
 F32Array = npt.NDArray[np.float32]
 I64Array = npt.NDArray[np.int64]

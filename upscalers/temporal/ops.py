@@ -1,4 +1,4 @@
-"""Tensor helpers of the temporal upscaler (``upscalers/temporal.py``): colour
+"""Tensor helpers of the temporal upscaler (``upscalers/temporal/upscaler.py``): colour
 transforms, 3x3 neighbourhood reductions, sampling grids and sample weights.
 
 All work on (C, H, W) tensors with arithmetic selects (no ``torch.where``, no
@@ -16,7 +16,7 @@ import torch
 import torch.nn.functional as F
 
 from server.frames.frame import RenderFrame, Size
-from upscalers.fsr1_easu import Easu
+from upscalers.fsr1.easu import Easu
 
 
 def as_tensor(array: Any, device: torch.device) -> torch.Tensor:

@@ -79,7 +79,7 @@ class TemporalParams:
     # whole, its blur lingered (0.3 dB on the game's scenes). 0.5: -0.2 dB there, static
     # game scene -0.1 dB.
     reset_carry: float = 0.5
-    # Back-projection (upscalers/back_projection.py): the fraction of each frame's
+    # Back-projection (upscalers/temporal/back_projection.py): the fraction of each frame's
     # prediction error (its samples against the box averages of the history over their
     # footprints) added back to the history; None: off. It recovers the detail the
     # render pixels' boxes average away, where accumulation alone converges to the

@@ -81,16 +81,16 @@ import torch
 import torch.nn.functional as F
 
 from server.frames.frame import FrameFlags, RenderFrame, Size
-from upscalers import temporal_ops as ops
-from upscalers.back_projection import AxisTaps, back_project, cached_axis_taps
 from upscalers.base import BACKENDS, Backend, Upscaler, numba_can_run
-from upscalers.fsr1_easu import Easu
-from upscalers.fsr1_rcas import Rcas
-from upscalers.kernel_readiness import kernels_ready
-from upscalers.temporal_params import TemporalParams
+from upscalers.fsr1.easu import Easu
+from upscalers.fsr1.rcas import Rcas
+from upscalers.kernels.readiness import kernels_ready
+from upscalers.temporal import ops
+from upscalers.temporal.back_projection import AxisTaps, back_project, cached_axis_taps
+from upscalers.temporal.params import TemporalParams
 
 if TYPE_CHECKING:
-    from upscalers.temporal_cpu import HostTemporal
+    from upscalers.temporal.cpu import HostTemporal
 
 
 @dataclass
@@ -326,7 +326,7 @@ class TemporalUpscaler(Upscaler):
                 raise ValueError(f"temporal backend 'numba' runs on the CPU, got a frame on {dev}")
             return None
         # Imported here: numba takes a while to import, and only this path needs it.
-        from upscalers import temporal_cpu
+        from upscalers.temporal import cpu as temporal_cpu
 
         if self.backend == "auto" and not (
             temporal_cpu.supports(render, display) and kernels_ready("temporal")

@@ -20,7 +20,7 @@ session runs. Per session the report has:
   the game's ground truth at display size, sampled on a game-time grid with a missing
   frame scored as the older one still on screen, over the whole window and per
   segment of the scene schedule; and how long frames took from render to the viewer
-  (server/bench/adaptive_picture.py). The stream is kept compressed during the case
+  (server/bench/adaptive/picture.py). The stream is kept compressed during the case
   and decoded and scored after serve has stopped, so scoring takes no CPU from the
   sessions measured.
 """
@@ -43,7 +43,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO
 
-from server.bench.adaptive_picture import (
+from server.bench.adaptive.picture import (
     DecodeCounts,
     GroundTruth,
     RecordedStream,
@@ -55,10 +55,10 @@ from server.bench.adaptive_picture import (
     render_to_receive_ms,
     score_stream,
 )
-from server.bench.report import BenchReport
 from server.bench.serve import ROOT, _poll_sessions, watch_every_session
 from server.game.render.scenes import SCHEDULE_SEGMENTS, scene_segments
 from server.ops.process import stop_child
+from server.ops.report import BenchReport
 from server.quic.moq_link import MoqLink
 from server.session.quality.figures import load_figures
 from server.session.quality.model import QualityModel, Setting
@@ -300,7 +300,7 @@ def _viewed_picture(
     args: argparse.Namespace,
 ) -> dict[str, object]:
     """The decoded picture's PSNR and SSIM against the ground truth over the game time
-    the measured window showed (see server/bench/adaptive_picture.py)."""
+    the measured window showed (see server/bench/adaptive/picture.py)."""
     shown = [
         stream.frames[pts][0]
         for (at, _, _), pts in zip(stream.fragments, decode_times_us(stream), strict=True)

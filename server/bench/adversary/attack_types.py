@@ -7,8 +7,7 @@ from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass, field
 
 from server.auth.keys import AuthKey
-
-from .adversary_client import AttackConnection, Target, count_still_served
+from server.bench.adversary.client import AttackConnection, Target, count_still_served
 
 GUARD = "upcast_relay_guard_refusals_total"
 UNAUTHORIZED = "upcast_relay_sessions_unauthorized_total"

@@ -2,7 +2,7 @@
 
 ``upcast relay`` runs as its own process on a free loopback port (its CPU and RSS read
 from /proc), a synthetic publisher streams 640x360 at 30 fps, and 5 load-test viewers
-watch from another process. For each scenario (server/bench/adversary_scenarios.py):
+watch from another process. For each scenario (server/bench/adversary/scenarios.py):
 ``--before-s`` quiet, ``--attack-s`` under attack from 127.0.0.2, ``--after-s`` quiet.
 Per scenario the report has the viewers' lowest fps in any 1 s window before, during
 and after, the relay's CPU % during the attack, its RSS before and after, the relay
@@ -28,15 +28,14 @@ from prometheus_client.parser import text_string_to_metric_families
 
 from server.auth.keys import AuthKey, generate_key, load_key
 from server.auth.minting import session_tokens
+from server.bench.adversary.attack_types import AttackContext, Expectation, Scenario
+from server.bench.adversary.client import Target
+from server.bench.adversary.scenarios import SCENARIOS
+from server.bench.adversary.sessions import connect_storm
 from server.ops.process import stop_child
+from server.ops.report import BenchReport
 from server.quic.http_fetch import http_get
 from server.relay.process import RelayProcess
-
-from .adversary_client import Target
-from .adversary_scenarios import SCENARIOS
-from .adversary_sessions import connect_storm
-from .adversary_types import AttackContext, Expectation, Scenario
-from .report import BenchReport
 
 HOST = "127.0.0.1"
 FPS = 30.0
@@ -172,7 +171,7 @@ async def run_phase(
     viewers = await asyncio.create_subprocess_exec(
         sys.executable,
         "-m",
-        "server.bench.adversary_viewers",
+        "server.bench.adversary.viewers",
         url,
         endpoint.cert_sha256,
         str(args.viewers),

@@ -11,8 +11,8 @@ from urllib.parse import quote
 
 from server.auth.keys import AuthKey
 from server.auth.tokens import Claims, sign
-
-from .adversary_client import (
+from server.bench.adversary.attack_types import MAX_CONNECTIONS, AttackContext, AttackResult
+from server.bench.adversary.client import (
     FRAME_HEADERS,
     AttackConnection,
     connect_headers,
@@ -20,8 +20,7 @@ from .adversary_client import (
     open_attack,
     request,
 )
-from .adversary_moq import open_session
-from .adversary_types import MAX_CONNECTIONS, AttackContext, AttackResult
+from server.bench.adversary.moq import open_session
 
 SLOW_CONNECTIONS = 16
 

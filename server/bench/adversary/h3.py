@@ -12,7 +12,13 @@ import random
 import time
 from collections.abc import Callable
 
-from .adversary_client import (
+from server.bench.adversary.attack_types import (
+    MAX_CONNECTIONS,
+    MAX_FLOOD_BYTES,
+    AttackContext,
+    AttackResult,
+)
+from server.bench.adversary.client import (
     FRAME_HEADERS,
     FRAME_SETTINGS,
     GREASE_TYPE,
@@ -26,8 +32,7 @@ from .adversary_client import (
     open_attack,
     pump_bytes,
 )
-from .adversary_moq import open_session
-from .adversary_types import MAX_CONNECTIONS, MAX_FLOOD_BYTES, AttackContext, AttackResult
+from server.bench.adversary.moq import open_session
 
 CHUNK = bytes(1200)
 GREASE_FRAME = 0x1F * 5 + 0x21  # a reserved frame type: a receiver must skip it

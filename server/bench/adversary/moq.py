@@ -9,13 +9,18 @@ from __future__ import annotations
 
 from aioquic.quic.connection import stream_is_unidirectional
 
+from server.bench.adversary.client import (
+    AttackConnection,
+    Target,
+    connect_headers,
+    open_attack,
+    request,
+)
 from server.moq import events as ev
 from server.moq.session import MoqSession
 from server.moq.transmit import CloseSession, ResetStream, SendData, StopSending
 from server.quic import codes
 from server.quic.connection import close_reason
-
-from .adversary_client import AttackConnection, Target, connect_headers, open_attack, request
 
 
 class AttackSession:

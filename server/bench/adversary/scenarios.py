@@ -7,10 +7,8 @@ connections and bytes (adversary_types) as well as in time.
 
 from __future__ import annotations
 
-from . import adversary_connects as connects
-from . import adversary_h3 as h3
-from . import adversary_sessions as sessions
-from .adversary_types import GUARD, SKIPPED, UNAUTHORIZED, Expectation, Scenario
+from server.bench.adversary import connects, h3, sessions
+from server.bench.adversary.attack_types import GUARD, SKIPPED, UNAUTHORIZED, Expectation, Scenario
 
 
 def _guard(*reasons: str) -> tuple[Expectation, ...]:

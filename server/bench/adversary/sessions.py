@@ -8,10 +8,8 @@ import asyncio
 import time
 from collections.abc import Awaitable, Callable
 
-from server.moq.messages import StreamType
-from server.moq.wire import encode_message, encode_varint
-
-from .adversary_client import (
+from server.bench.adversary.attack_types import MAX_CONNECTIONS, AttackContext, AttackResult
+from server.bench.adversary.client import (
     FRAME_HEADERS,
     MAX_VARINT,
     AttackConnection,
@@ -19,8 +17,9 @@ from .adversary_client import (
     frame_header,
     open_attack,
 )
-from .adversary_moq import AttackSession, open_session
-from .adversary_types import MAX_CONNECTIONS, AttackContext, AttackResult
+from server.bench.adversary.moq import AttackSession, open_session
+from server.moq.messages import StreamType
+from server.moq.wire import encode_message, encode_varint
 
 SESSION_CLOSE_WAIT_S = 1.0
 

@@ -3,7 +3,7 @@ relay's nor the attacker's): N load-test viewers that print, every 0.25 s, one J
 ``{"t": monotonic, "frames": [video frames so far, per viewer]}`` on stdout until
 stdin closes.
 
-``python -m server.bench.adversary_viewers URL CERT_SHA256 N``
+``python -m server.bench.adversary.viewers URL CERT_SHA256 N``
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """``upcast bench app``: real programs streamed as source x11 to headless Chromium.
 
-Per program (server/bench/app_presets.py): the stack as ``upcast up --source x11``
+Per program (server/bench/app/presets.py): the stack as ``upcast up --source x11``
 runs it (relay process, game process with Xvfb and the program, worker, the session
 on its own event loop), a headless Chromium page that clicks the picture (focus),
 taps the program's start keys, then taps its play keys every half second while the
@@ -29,12 +29,12 @@ from typing import Any
 
 import numpy as np
 
-from server.bench.app_presets import PRESETS, PresetError
+from server.bench.app.presets import PRESETS, PresetError
 from server.bench.latency import LiveStack, StageCollector, percentiles
 from server.bench.page_stats import read_latency, read_stats
-from server.bench.report import BenchReport
-from server.bench.snapshots import FrameThumbs, snapshot_psnr
 from server.ops.browser_paths import CHROMIUM, CHROMIUM_ARGS, WEB_ROOT
+from server.ops.report import BenchReport
+from server.serve.snapshots import FrameThumbs, snapshot_psnr
 from server.stack.local import SessionConfig
 
 TAP_EVERY_S = 0.5

@@ -20,12 +20,12 @@ from typing import Any
 
 import numpy as np
 
-from server.bench.report import BenchReport, summarize_ms
 from server.frames.frame import Size
 from server.game.x11.capture import ScreenCapture
 from server.game.x11.display import VirtualDisplay
 from server.game.x11.grabbers import DEFAULT_GRABBER, GRABBERS
 from server.game.x11.pattern import card_rects, paint, render
+from server.ops.report import BenchReport, summarize_ms
 
 TARGET_MS = 2.0
 TARGET_SIZE = Size(640, 360)

@@ -4,7 +4,7 @@ For each ``--profile`` (server/net/profiles.py: lan, cable, wifi, lte, drop,
 blackout, or a schedule file) the whole stack starts afresh, the user-space
 network emulator goes between the relay and a headless Chromium player (and
 ``--viewers`` load-test viewers), and ``--seconds`` are measured
-(server/bench/network_measure.py). Reported per profile:
+(server/bench/network/measure.py). Reported per profile:
 
 - delivered fps: frames the page presented in the window against the frames the
   session published in the same window (``delivered_ratio``);
@@ -14,9 +14,9 @@ network emulator goes between the relay and a headless Chromium player (and
   method (the page joins the timing track with its present stamps);
 - bitrate against capacity every 0.5 s: the encoder's bitrate target, the
   emulated downlink's rate in force, what the link delivered and what the page
-  counted (server/bench/network_series.py);
+  counted (server/bench/network/series.py);
 - received PSNR: canvas snapshots (one a second) against the thumbnail of the
-  frame the session encoded with the same id (server/bench/snapshots.py);
+  frame the session encoded with the same id (server/serve/snapshots.py);
 - the page's own counters over the window (lost, skipped, freezes, late, ...)
   where the page exposes them, and the load-test viewers' counts.
 
@@ -30,9 +30,9 @@ import argparse
 import sys
 from pathlib import Path
 
-from server.bench.report import BenchReport
 from server.frames.frame import Size
 from server.ops.browser_paths import CHROMIUM, CHROMIUM_ARGS, WEB_ROOT
+from server.ops.report import BenchReport
 
 MAX_VIEWERS = 200
 
@@ -122,8 +122,8 @@ def run(args: argparse.Namespace) -> int:
         return 2
     from playwright.sync_api import sync_playwright
 
-    from server.bench.network_measure import NetworkRun, measure
-    from server.bench.network_table import table
+    from server.bench.network.measure import NetworkRun, measure
+    from server.bench.network.table import table
     from server.stack.local import SessionConfig
 
     profiles = list(args.profile or DEFAULT_PROFILES)
@@ -187,7 +187,7 @@ def run(args: argparse.Namespace) -> int:
         report.write(args.json)
         print(f"wrote {args.json}")
     if args.plot is not None:
-        from server.bench.network_plot import plot
+        from server.bench.network.plot import plot
 
         note = plot(report.cases, args.plot)
         print(note if note else f"wrote {args.plot}")

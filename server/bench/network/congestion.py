@@ -34,8 +34,8 @@ from aioquic.asyncio.server import serve
 from aioquic.quic.configuration import QuicConfiguration
 from aioquic.quic.events import HandshakeCompleted, QuicEvent, StreamDataReceived
 
-from server.bench.report import BenchReport, summarize_ms
 from server.net import LinkProfile, NetworkEmulator, Schedule
+from server.ops.report import BenchReport, summarize_ms
 from server.quic.certs import generate_cert
 from server.quic.congestion_register import algorithm_names
 

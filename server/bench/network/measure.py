@@ -3,7 +3,7 @@
 The stack runs as in the latency benchmark (LiveStack: relay process, game and
 worker processes, the session on a thread of this process, a frame tap keeping
 thumbnails of what was encoded). The emulator (server/net) listens on its own port
-on loopback, in a process of its own (server/bench/network_link.py), and forwards
+on loopback, in a process of its own (server/bench/network/link.py), and forwards
 to the relay: UDP shaped, TCP passed through (the page
 fetches the relay's certificate hash over TCP from the port it connects to). The
 page itself is served by the relay directly; its ``port`` parameter makes it
@@ -24,21 +24,21 @@ from dataclasses import dataclass
 from typing import Any
 
 from server.bench.latency import STAGES, LiveStack, StageCollector, percentiles
-from server.bench.network_link import EmulatorProcess
-from server.bench.network_page import (
+from server.bench.network.link import EmulatorProcess
+from server.bench.network.page import (
     DRAW_WATCH,
     READ_DRAWS,
     PictureQuality,
     ShownFrames,
     counter_deltas,
 )
-from server.bench.network_series import SAMPLE_EVERY_S, RateSeries, capacity_bps
-from server.bench.network_viewers import SpectatorViewers, viewers_summary
+from server.bench.network.series import SAMPLE_EVERY_S, RateSeries, capacity_bps
+from server.bench.network.viewers import SpectatorViewers, viewers_summary
 from server.bench.page_stats import read_latency, read_stats
-from server.bench.snapshots import FrameThumbs
 from server.loadtest.plan import RunPlan
 from server.loadtest.viewer import ViewerConfig
 from server.net import resolve
+from server.serve.snapshots import FrameThumbs
 from server.stack.local import SessionConfig
 
 CONNECT_TIMEOUT_S = 60.0

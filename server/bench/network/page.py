@@ -16,7 +16,7 @@ import statistics
 from dataclasses import dataclass, field
 from typing import Any
 
-from server.bench.snapshots import FrameThumbs, shown_psnr
+from server.serve.snapshots import FrameThumbs, shown_psnr
 from server.session.feedback import FREEZE_MS
 
 DRAW_WATCH = """

@@ -355,11 +355,11 @@ def measure_flops(
 def run(args: argparse.Namespace, load: LoadNetwork | None = None) -> int:
     import torch
 
-    from server.bench.reframe_tables import must_show_checks, speedup_flip_plot, tables
-    from server.bench.report import BenchReport
+    from server.bench.reframe.tables import must_show_checks, speedup_flip_plot, tables
     from server.frames.frame import Size
     from server.game.render.renderer import Renderer, RenderTargets
     from server.game.render.scenes import parse_scene_list
+    from server.ops.report import BenchReport
 
     try:
         display = Size.parse(args.display_size)
