@@ -292,7 +292,7 @@ def step_capacity(step_up: float) -> Callable[[float], float]:
 def test_an_app_limited_stream_probes_its_way_back_after_a_step_up() -> None:
     # x264 makes 60 % of its target: what arrives after the 2 Mbit/s spell proves
     # only 1.5 times that, so without padding the climb stopped near 3-4 Mbit/s for
-    # good (the README: 0 of 11 step times reached 70 % of the ceiling in 10 s).
+    # good (an earlier run, in git history: 0 of 11 step times reached 70 % of the ceiling in 10 s).
     # Probes pad the frames to a known rate and let what arrives prove the link.
     reached = []
     for tenth in range(0, 21, 2):
@@ -346,7 +346,7 @@ def test_probes_with_frames_of_uneven_size_still_bring_the_rate_back() -> None:
 
 def test_probes_bring_the_rate_back_when_the_scene_turns_complex_now_and_then() -> None:
     # An encoder making 60 % of its target with a complex moment (95 %) for 1.5 s
-    # every 8 s: a cap scaled by the encoder's recent yield (simulated for the README,
+    # every 8 s: a cap scaled by the encoder's recent yield (simulated in an earlier run,
     # not shipped) reached 70 % of the ceiling in 0 of 11 step times; what a probe
     # proves does not depend on the picture.
     def complex_now_and_then(t: float) -> float:

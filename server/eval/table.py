@@ -1,4 +1,4 @@
-"""Markdown tables of an upscaler evaluation, for the README and the terminal."""
+"""Markdown tables of an upscaler evaluation, for the docs and the terminal."""
 
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
 """What ``upcast relay`` is told on its command line, validated at start.
 
 Errors name the field (``invalid relay configuration: max_backlog_kib: ...``); the
-README's configuration reference is generated from this model.
+docs/configuration.md's reference is generated from this model.
 """
 
 from __future__ import annotations

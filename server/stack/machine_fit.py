@@ -4,9 +4,9 @@ machine's cores can hold with the built-in CPU renderer.
 Why cores, not a start-up benchmark: every stage shares the same cores (the game's
 torch ray caster, the upscaler worker, x264 and the relay), so the renderer alone
 measures fast and the stack still falls short; the figures below are the whole stack
-measured on 2 cores (README "Latency budget": 640x360 at a 60 fps target held
-25-28 fps, 52 budget warnings in 90 s). The render cost grows with render pixels,
-so with fewer cores the render scale drops before the frame rate does.
+measured on 2 cores (docs/measurements/streaming.md, "Latency budget": 640x360 at a
+60 fps target held 25-28 fps, 52 budget warnings in 90 s). The render cost grows with
+render pixels, so with fewer cores the render scale drops before the frame rate does.
 ``--fps`` and ``--render-size`` override either choice.
 """
 

@@ -102,7 +102,7 @@ def test_the_bitrate_follows_a_link_that_narrows_and_widens() -> None:
     assert dropping and min(dropping) < 400e3, dropping
     # The stream fits the narrow link. A cut for loss leaves no congestion point, so
     # the climb back is the quick one and may pass the link again before the spell
-    # ends (README, "Links that drop before they queue"; in one CI run it reached
+    # ends (docs/networks.md, "Links that drop before they queue"; in one CI run it reached
     # 417 kbit/s before 12 s, from a cut that had stopped at 188): a sawtooth under
     # GCC's overshoot, as in the simulation of tests/test_rate_control.py, not a rate
     # that stays over the link.

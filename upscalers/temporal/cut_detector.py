@@ -37,7 +37,7 @@ from server.frames.frame import RenderFrame
 class CutParams:
     # How far past the neighbourhood's range a sample must lie to count as changed,
     # in 8-bit levels. Chosen with ``fraction`` on the game's scenes and the training
-    # photographs (scripts, tests/test_cut_detector.py): see the README.
+    # photographs (scripts, tests/test_cut_detector.py): see docs/upscalers.md, "Scene cuts".
     level: float = 24.0
     # The share of on-screen samples that must have changed.
     fraction: float = 0.2
