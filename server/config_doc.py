@@ -1,10 +1,15 @@
-"""Markdown reference of the pydantic configuration models, for docs/configuration.md.
+"""Markdown references generated from the code: the pydantic configuration models for
+docs/configuration.md, and every command's options (argparse) for docs/commands.md.
 
-``python -m server.config_doc`` prints it; tests/test_readme.py keeps the block in
-docs/configuration.md in step with the models.
+``python -m server.config_doc`` prints the first, ``--cli`` the second;
+tests/test_readme.py keeps both blocks in step with the code.
 """
 
 from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
 
 from pydantic import BaseModel
 from pydantic_core import PydanticUndefined
@@ -45,5 +50,52 @@ def markdown() -> str:
     return "\n".join(lines).rstrip() + "\n"
 
 
+def _cell(text: str) -> str:
+    """Table-safe: a pipe would end the cell, and ``<name>`` would read as an HTML tag."""
+    return " ".join(text.split()).replace("|", "\\|").replace("<", "&lt;")
+
+
+def _portable(value: object) -> str:
+    """A default under the home folder as ``~/...``: the same page on every machine."""
+    text = str(value)
+    home = str(Path.home())
+    return "~" + text[len(home) :] if text.startswith(home + "/") else text
+
+
+def _options(parser: argparse.ArgumentParser) -> list[str]:
+    rows = ["| option | default | meaning |", "|---|---|---|"]
+    for action in parser._actions:
+        if isinstance(action, argparse._HelpAction):
+            continue
+        flag = action.default is False and not action.option_strings[1:]
+        shown = action.default in (None, argparse.SUPPRESS) or flag
+        default = "" if shown else f"`{_portable(action.default)}`"
+        meaning = action.help or ""
+        if "%(" in meaning:
+            meaning = meaning % {"default": action.default, "prog": parser.prog}
+        names = ", ".join(f"`{name}`" for name in action.option_strings) or f"`{action.dest}`"
+        rows.append(f"| {names} | {default} | {_cell(meaning)} |")
+    return rows
+
+
+def cli_markdown() -> str:
+    """Every ``upcast`` command's options, and the names ``bench`` and ``eval`` take."""
+    from server.cli import COMMANDS, build_parser
+    from server.commands.bench import BENCHMARKS
+    from server.commands.eval import EVALUATIONS
+
+    lines: list[str] = []
+    for name in COMMANDS:
+        parser = build_parser(name)
+        subparsers = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+        lines += [f"### upcast {name}", "", *_options(subparsers.choices[name]), ""]
+        choices = {"bench": BENCHMARKS, "eval": EVALUATIONS}.get(name)
+        if choices:
+            lines += [f"| {name} NAME | what it measures |", "|---|---|"]
+            lines += [f"| `{key}` | {_cell(text)} |" for key, text in choices.items()]
+            lines.append("")
+    return "\n".join(lines).rstrip() + "\n"
+
+
 if __name__ == "__main__":
-    print(markdown(), end="")
+    print(cli_markdown() if "--cli" in sys.argv[1:] else markdown(), end="")

@@ -4,11 +4,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from server.config_doc import markdown
+from server.config_doc import cli_markdown, markdown
 
 ROOT = Path(__file__).resolve().parent.parent
 README = (ROOT / "README.md").read_text()
 CONFIGURATION = (ROOT / "docs" / "configuration.md").read_text()
+COMMANDS = (ROOT / "docs" / "commands.md").read_text()
 
 
 def test_config_reference_matches_the_models() -> None:
@@ -17,6 +18,15 @@ def test_config_reference_matches_the_models() -> None:
     end = CONFIGURATION.index("<!-- config:end -->")
     assert CONFIGURATION[start:end] == markdown(), (
         "regenerate the block in docs/configuration.md with: python -m server.config_doc"
+    )
+
+
+def test_command_reference_matches_the_parsers() -> None:
+    begin = COMMANDS.index("<!-- cli:begin")
+    start = COMMANDS.index("\n", begin) + 1
+    end = COMMANDS.index("<!-- cli:end -->")
+    assert COMMANDS[start:end] == cli_markdown(), (
+        "regenerate the block in docs/commands.md with: python -m server.config_doc --cli"
     )
 
 
