@@ -29,6 +29,8 @@ BENCHMARKS: dict[str, str] = {
     "delivered fps, freezes, glass-to-glass, bitrate against capacity, received PSNR",
     "congestion": "QUIC congestion controllers (reno, cubic, upcast-media) over lossy links: "
     "goodput and chunks on time for a video-like sender",
+    "relay": "relay data-plane CPU per viewer, upcast relay (aioquic) against moq-dev's Rust "
+    "relay core (moq-rs): idle and loaded CPU, viewers' fps, loss, latency, RSS",
 }
 
 # Benchmarks that live in a family's package (server/bench/<family>/), by name; the
@@ -41,6 +43,7 @@ BENCH_MODULES: dict[str, str] = {
     "congestion": "network.congestion",
     "network": "network.bench",
     "reframe": "reframe.bench",
+    "relay": "relay.bench",
 }
 
 
