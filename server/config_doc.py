@@ -55,11 +55,14 @@ def _cell(text: str) -> str:
     return " ".join(text.split()).replace("|", "\\|").replace("<", "&lt;")
 
 
+CHECKOUT = Path(__file__).resolve().parents[1]
+
+
 def _portable(value: object) -> str:
-    """A default under the home folder as ``~/...``: the same page on every machine."""
-    text = str(value)
-    home = str(Path.home())
-    return "~" + text[len(home) :] if text.startswith(home + "/") else text
+    """Paths in the checkout as relative ones and under the home folder as ``~/...``:
+    the same page wherever the project is checked out, whoever runs it."""
+    text = str(value).replace(f"{CHECKOUT}/", "")
+    return text.replace(f"{Path.home()}/", "~/")
 
 
 def _options(parser: argparse.ArgumentParser) -> list[str]:
@@ -74,7 +77,7 @@ def _options(parser: argparse.ArgumentParser) -> list[str]:
         if "%(" in meaning:
             meaning = meaning % {"default": action.default, "prog": parser.prog}
         names = ", ".join(f"`{name}`" for name in action.option_strings) or f"`{action.dest}`"
-        rows.append(f"| {names} | {default} | {_cell(meaning)} |")
+        rows.append(f"| {names} | {default} | {_cell(_portable(meaning))} |")
     return rows
 
 

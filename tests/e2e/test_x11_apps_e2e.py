@@ -176,6 +176,16 @@ def test_supertux_plays_and_follows_the_keys(supertux: Live, browser: Any) -> No
         finally:
             page.keyboard.up("ArrowRight")
         walk_change = float(np.abs(floor(walked) - floor(idle)).mean())
+        # The camera follows Tux, and Tux slides on after the key: on a loaded CI machine
+        # the picture had moved 4.4 at the release where local runs read 13.1 (the key
+        # reached the game later, the camera was still catching up). Up to 3 s more of
+        # what the walk goes on to show count; with no key the floor did not move at all.
+        wanted = max(8.0, 4 * idle_change)
+        catch_up = time.monotonic() + 3.0
+        while walk_change <= wanted and time.monotonic() < catch_up:
+            page.wait_for_timeout(150)
+            _, later = newest(live.tap)
+            walk_change = max(walk_change, float(np.abs(floor(later) - floor(idle)).mean()))
         # After the walk the picture keeps changing for a while (Tux slides on, the camera
         # follows) and each change costs the encoder about a second of climbing quality at
         # 1.5 Mbit/s: six snapshots 150 ms apart right after the key read 32.8, 33.2, 34.5,
@@ -200,7 +210,7 @@ def test_supertux_plays_and_follows_the_keys(supertux: Live, browser: Any) -> No
         assert statistics.median(intro_db) >= SAME_FRAME_DB, intro_db
         assert statistics.median(level_db) >= SAME_FRAME_DB, level_db
         assert idle_change < 2.0, idle_change
-        assert walk_change > max(8.0, 4 * idle_change), (idle_change, walk_change)
+        assert walk_change > wanted, (idle_change, walk_change)
         assert photon["samples"], "no input-to-photon sample"
         assert s["errors"] == []
         live.stack.check()
