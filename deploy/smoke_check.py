@@ -111,17 +111,34 @@ def sessions(serve_url: str) -> dict[str, dict[str, Any]]:
     return {str(row["broadcast"]): row for row in json.loads(body)["sessions"]}
 
 
+# A session's game opens its metrics port once its renderer is built, which can be after
+# the supervisor's /healthz says the session is up: a CI run found the first game's port
+# closed right after that. Prometheus keeps scraping; the check keeps trying as long.
+SCRAPE_PATIENCE_S = 30.0
+
+
+def scrape(url: str, deadline: float) -> tuple[int, bytes]:
+    while True:
+        try:
+            return get(url)
+        except SmokeFailure:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(1.0)
+
+
 def check_scrape_targets() -> None:
     """Every target of the Prometheus configuration, as Prometheus would scrape it."""
     config = yaml.safe_load(PROMETHEUS.read_text())
     checked = 0
+    deadline = time.monotonic() + SCRAPE_PATIENCE_S
     for job in config["scrape_configs"]:
         path = job.get("metrics_path", "/metrics")
         for group in job["static_configs"]:
             for target in group["targets"]:
                 port = str(target).rsplit(":", 1)[1]
                 url = f"http://127.0.0.1:{port}{path}"
-                status, body = get(url)
+                status, body = scrape(url, deadline)
                 if status != 200 or b"upcast_" not in body:
                     raise SmokeFailure(f"{job['job_name']} target {target}: {url} gave {status}")
                 checked += 1
