@@ -1,4 +1,5 @@
-"""Process liveness (the rings take slots back from dead peers) and stopping a child."""
+"""Process liveness (the rings take slots back from dead peers), stopping a child, and a
+process's CPU time and memory as /proc shows them (every thread; no cooperation needed)."""
 
 from __future__ import annotations
 
@@ -6,6 +7,24 @@ import os
 import signal
 import subprocess
 from typing import Any
+
+CLK_TCK = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+
+
+def cpu_seconds(pid: int) -> float:
+    """utime + stime of ``pid`` (Linux), all its threads."""
+    with open(f"/proc/{pid}/stat", encoding="ascii") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / CLK_TCK  # utime, stime
+
+
+def rss_mb(pid: int) -> float:
+    """Resident memory of ``pid`` in MB (NaN where /proc does not say)."""
+    with open(f"/proc/{pid}/status", encoding="ascii") as f:
+        for line in f:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024.0
+    return float("nan")
 
 
 def pid_alive(pid: int) -> bool:

@@ -16,7 +16,6 @@ import argparse
 import asyncio
 import contextlib
 import json
-import os
 import subprocess
 import sys
 import tempfile
@@ -32,7 +31,7 @@ from server.bench.adversary.attack_types import AttackContext, Expectation, Scen
 from server.bench.adversary.client import Target
 from server.bench.adversary.scenarios import SCENARIOS
 from server.bench.adversary.sessions import connect_storm
-from server.ops.process import stop_child
+from server.ops.process import cpu_seconds, rss_mb, stop_child
 from server.ops.report import BenchReport
 from server.quic.http_fetch import http_get
 from server.relay.process import RelayProcess
@@ -44,7 +43,6 @@ FPS_KEEP = 0.95
 RSS_SLACK_MB = 10.0
 VIEWERS_UP_S = 30.0
 WARMUP_S = 3.0
-CLK_TCK = os.sysconf("SC_CLK_TCK")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -63,21 +61,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-# -- /proc and /metrics ------------------------------------------------------------------
-
-
-def cpu_seconds(pid: int) -> float:
-    with open(f"/proc/{pid}/stat", encoding="ascii") as f:
-        fields = f.read().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / CLK_TCK  # utime, stime
-
-
-def rss_mb(pid: int) -> float:
-    with open(f"/proc/{pid}/status", encoding="ascii") as f:
-        for line in f:
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024.0
-    return float("nan")
+# -- /metrics ---------------------------------------------------------------------------
 
 
 async def counters(port: int) -> dict[str, float]:

@@ -9,26 +9,12 @@ read off by interpolation.
 from __future__ import annotations
 
 import bisect
-import os
 import threading
 import time
 
-CLK_TCK = os.sysconf("SC_CLK_TCK")
+from server.ops.process import cpu_seconds, rss_mb
+
 TRACE_INTERVAL_S = 0.1
-
-
-def cpu_seconds(pid: int) -> float:
-    with open(f"/proc/{pid}/stat", encoding="ascii") as f:
-        fields = f.read().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / CLK_TCK  # utime, stime
-
-
-def rss_mb(pid: int) -> float:
-    with open(f"/proc/{pid}/status", encoding="ascii") as f:
-        for line in f:
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024.0
-    return float("nan")
 
 
 def cpu_percent_over(pid: int, seconds: float) -> float:
