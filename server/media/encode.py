@@ -48,6 +48,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from fractions import Fraction
 
@@ -204,9 +205,18 @@ class EncodedFrame:
 class VideoEncoder:
     """libx264 via PyAV, producing CMAF fragments with zero frames of delay."""
 
-    def __init__(self, config: EncoderConfig) -> None:
+    def __init__(self, config: EncoderConfig, encoded: tuple[int, int] | None = None) -> None:
+        """``encoded``: the (width, height) to encode at from the first frame, when smaller
+        than the input's (``config.width`` x ``config.height``): the frames are scaled
+        down in the YUV conversion pass, as after :meth:`set_encoded_size`. A rendition
+        ladder's rungs open this way, so their init segment is known before any frame."""
         self.config = config
-        self._codec = _open_x264(config)
+        width, height = encoded or (config.width, config.height)
+        opened = config
+        if encoded is not None:
+            _check_encoded_size(config, width, height)
+            opened = replace(config, width=width, height=height, bitrate=config.target_bitrate)
+        self._codec = _open_x264(opened)
         extradata = self._codec.extradata
         if not extradata:
             raise RuntimeError("libx264 returned no global header (SPS/PPS)")
@@ -214,11 +224,15 @@ class VideoEncoder:
         # frame.reformat() would rebuild for every frame (about 1 ms at 360p).
         self._reformatter = VideoReformatter()
         self.avc = AvcConfig.from_annexb(extradata)
-        self.init_segment = init_segment(config.width, config.height, TIMESCALE, self.avc)
+        self.init_segment = init_segment(width, height, TIMESCALE, self.avc)
         self.encoded_config = EncodedConfig(
-            0, config.width, config.height, self.avc.codec_string(), self.init_segment
+            0, width, height, self.avc.codec_string(), self.init_segment
         )
         self._pending_size: tuple[int, int] | None = None
+        # The last frame x264 was given (yuv420p at the encoded size). x264 copies its
+        # input, so another thread may read it afterwards: a rendition ladder scales its
+        # rungs from it instead of converting the RGB frame a second time.
+        self.last_yuv: VideoFrame | None = None
         self.size_changes = 0
         self._sequence = 0
         self._last_pts_us: int | None = None
@@ -282,14 +296,7 @@ class VideoEncoder:
         encoded changes nothing. Safe to call from the event loop while another thread
         encodes: the encoding thread applies it before its next frame.
         """
-        cfg = self.config
-        if not (16 <= width <= cfg.width and 16 <= height <= cfg.height):
-            raise ValueError(
-                f"encoded size {width}x{height} must lie within 16x16 .. the input's"
-                f" {cfg.width}x{cfg.height}"
-            )
-        if width % 2 or height % 2:
-            raise ValueError(f"encoded size {width}x{height} must be even for yuv420p (x264)")
+        _check_encoded_size(self.config, width, height)
         self._pending_size = (width, height)
 
     def pad_frames_to(self, fragment_bytes: int) -> None:
@@ -298,18 +305,51 @@ class VideoEncoder:
         the event loop while another thread encodes: it only sets a number."""
         self._min_fragment_bytes = max(0, int(fragment_bytes))
 
-    def encode(self, rgb: npt.NDArray[np.uint8], frame_id: int, pts_us: int) -> EncodedFrame:
+    def encode(
+        self,
+        rgb: npt.NDArray[np.uint8],
+        frame_id: int,
+        pts_us: int,
+        *,
+        force_keyframe: bool = False,
+    ) -> EncodedFrame:
         """Encode one (H, W, 3) uint8 RGB frame; ``pts_us`` must increase.
 
-        The array may be a read-only view of shared memory; it is only read, and
-        only during this call.
+        ``force_keyframe``: make this frame an IDR whatever the cooldown of
+        :meth:`request_keyframe` (a rendition ladder keeps its rungs' IDRs on the same
+        frames this way). The array may be a read-only view of shared memory; it is
+        only read, and only during this call.
         """
-        start = time.perf_counter_ns()
         cfg = self.config
         if rgb.shape != (cfg.height, cfg.width, 3) or rgb.dtype != np.uint8:
             raise ValueError(
                 f"frame must be uint8 ({cfg.height}, {cfg.width}, 3), got {rgb.dtype} {rgb.shape}"
             )
+        return self._encode(lambda: self._to_yuv(rgb), frame_id, pts_us, force_keyframe)
+
+    def encode_yuv(
+        self, yuv: VideoFrame, frame_id: int, pts_us: int, *, force_keyframe: bool = False
+    ) -> EncodedFrame:
+        """Encode a frame already converted: yuv420p, BT.709 limited range, at the
+        encoded size (a rendition ladder converts the display frame once and scales
+        the planes down rung by rung; see server/media/ladder.py). Else as :meth:`encode`."""
+
+        def checked() -> VideoFrame:
+            if yuv.format.name != "yuv420p" or (yuv.width, yuv.height) != self.encoded_size:
+                width, height = self.encoded_size
+                raise ValueError(
+                    f"frame must be yuv420p {width}x{height},"
+                    f" got {yuv.format.name} {yuv.width}x{yuv.height}"
+                )
+            return yuv
+
+        return self._encode(checked, frame_id, pts_us, force_keyframe)
+
+    def _encode(
+        self, convert: Callable[[], VideoFrame], frame_id: int, pts_us: int, force_keyframe: bool
+    ) -> EncodedFrame:
+        start = time.perf_counter_ns()
+        cfg = self.config
         if self._last_pts_us is not None and pts_us <= self._last_pts_us:
             raise ValueError(f"pts_us must increase: {pts_us} after {self._last_pts_us}")
         self._last_pts_us = pts_us
@@ -326,10 +366,11 @@ class VideoEncoder:
         new_config = self._take_size_change()
 
         t_convert = time.perf_counter_ns()
-        yuv = self._to_yuv(rgb)
+        yuv = convert()
+        self.last_yuv = yuv
         t_x264 = time.perf_counter_ns()
         yuv.pts = pts_us
-        forced = self._take_keyframe_request(pts_us)
+        forced = self._take_keyframe_request(pts_us) or force_keyframe
         periodic = not forced and self._periodic_idr_due(pts_us)
         if forced or periodic:
             yuv.pict_type = PictureType.I
@@ -434,29 +475,49 @@ class VideoEncoder:
         return True
 
     def _to_yuv(self, rgb: npt.NDArray[np.uint8]) -> VideoFrame:
-        # from_numpy_buffer wraps the array's memory (no copy); padded rows (a crop)
-        # become the frame's linesize. Only pixel-strided views need a copy.
-        if rgb.strides[1:] == (3, 1):
-            frame = VideoFrame.from_numpy_buffer(rgb, format="rgb24")
-        else:
-            frame = VideoFrame.from_ndarray(np.ascontiguousarray(rgb), format="rgb24")
-        # BT.709 limited range, matching the VUI written into the SPS, so the browser
-        # converts back with the same matrix.
         width, height = self.encoded_size
-        scaled = (width, height) != (self.config.width, self.config.height)
-        return self._reformatter.reformat(
-            frame,
-            width=width,
-            height=height,
-            # Area averaging when scaling down: no aliasing of thin detail, and no more
-            # work than the conversion pass it shares.
-            interpolation=Interpolation.AREA if scaled else None,
-            format="yuv420p",
-            src_colorspace=Colorspace.ITU709,
-            dst_colorspace=Colorspace.ITU709,
-            dst_color_range=ColorRange.MPEG,
-            threads=self.config.convert_threads,
+        return rgb_to_yuv420(self._reformatter, rgb, width, height, self.config.convert_threads)
+
+
+def rgb_to_yuv420(
+    reformatter: VideoReformatter,
+    rgb: npt.NDArray[np.uint8],
+    width: int,
+    height: int,
+    threads: int = 1,
+) -> VideoFrame:
+    """An (H, W, 3) uint8 RGB array as a yuv420p frame of ``width`` x ``height``, BT.709
+    limited range (the VUI written into the SPS, so the browser converts back with the
+    same matrix). ``reformatter`` keeps its swscale context between calls."""
+    # from_numpy_buffer wraps the array's memory (no copy); padded rows (a crop)
+    # become the frame's linesize. Only pixel-strided views need a copy.
+    if rgb.strides[1:] == (3, 1):
+        frame = VideoFrame.from_numpy_buffer(rgb, format="rgb24")
+    else:
+        frame = VideoFrame.from_ndarray(np.ascontiguousarray(rgb), format="rgb24")
+    scaled = (width, height) != (rgb.shape[1], rgb.shape[0])
+    return reformatter.reformat(
+        frame,
+        width=width,
+        height=height,
+        # Area averaging when scaling down: no aliasing of thin detail.
+        interpolation=Interpolation.AREA if scaled else None,
+        format="yuv420p",
+        src_colorspace=Colorspace.ITU709,
+        dst_colorspace=Colorspace.ITU709,
+        dst_color_range=ColorRange.MPEG,
+        threads=threads,
+    )
+
+
+def _check_encoded_size(cfg: EncoderConfig, width: int, height: int) -> None:
+    if not (16 <= width <= cfg.width and 16 <= height <= cfg.height):
+        raise ValueError(
+            f"encoded size {width}x{height} must lie within 16x16 .. the input's"
+            f" {cfg.width}x{cfg.height}"
         )
+    if width % 2 or height % 2:
+        raise ValueError(f"encoded size {width}x{height} must be even for yuv420p (x264)")
 
 
 _NAL_IDR = 5
