@@ -3,9 +3,43 @@
 from __future__ import annotations
 
 import re
+from collections.abc import Sequence
 from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+# The rendition ladder for spectators (server/media/ladder.py): rungs at the display
+# size / each divisor, a group every DEFAULT_GOP_S.
+DEFAULT_DIVISORS = (2, 4)
+DEFAULT_GOP_S = 1.0
+MAX_RUNGS = 4
+
+
+def parse_divisors(text: str) -> tuple[int, ...]:
+    """``"2,4"`` -> (2, 4); ``"off"``, ``"none"`` or ``""`` -> () (no ladder).
+
+    ValueError naming the problem: not integers, a divisor under 2 (a rung the size of
+    the player's track would only double its cost), repeats, more than MAX_RUNGS."""
+    text = text.strip().lower()
+    if text in ("", "off", "none"):
+        return ()
+    try:
+        divisors = tuple(int(part) for part in text.split(","))
+    except ValueError:
+        raise ValueError(f"ladder must be divisors like 2,4 or 'off', got {text!r}") from None
+    return check_divisors(divisors)
+
+
+def check_divisors(divisors: Sequence[int]) -> tuple[int, ...]:
+    """The divisors, checked (see :func:`parse_divisors`), largest rung first."""
+    if any(d < 2 for d in divisors):
+        raise ValueError(f"ladder divisors must be at least 2, got {list(divisors)}")
+    if len(set(divisors)) != len(divisors):
+        raise ValueError(f"ladder divisors must differ, got {list(divisors)}")
+    if len(divisors) > MAX_RUNGS:
+        raise ValueError(f"at most {MAX_RUNGS} ladder rungs, got {len(divisors)}")
+    return tuple(sorted(divisors))
+
 
 _BROADCAST = re.compile(r"^[A-Za-z0-9_.-]+(/[A-Za-z0-9_.-]+)*$")
 
@@ -41,6 +75,12 @@ class StreamConfig(BaseModel):
         description="refresh the picture in sweeps of intra blocks instead of periodic"
         " keyframes (no keyframe spikes on a narrow link); keyframes on demand",
     )
+    ladder: list[int] = Field(
+        default_factory=lambda: list(DEFAULT_DIVISORS),
+        max_length=MAX_RUNGS,
+        description="spectator renditions: the display size divided by each (>= 2, distinct);"
+        " empty: the player's stream only",
+    )
     quality: Literal["auto", "fixed"] = Field(
         default="auto",
         description="auto: upscaler, render scale, frame generation, encoded size and, last,"
@@ -67,6 +107,11 @@ class StreamConfig(BaseModel):
         le=65535,
         description="session Prometheus port (default: port + 1; 0 = off)",
     )
+
+    @field_validator("ladder")
+    @classmethod
+    def _ladder(cls, v: list[int]) -> list[int]:
+        return list(check_divisors(v))
 
     @field_validator("broadcast")
     @classmethod

@@ -133,6 +133,7 @@ def _sessions(args: argparse.Namespace) -> list[ServedSession] | None:
         gop_seconds=args.gop_seconds,
         rate_control=args.rate_control,
         intra_refresh=args.intra_refresh,
+        ladder=list(args.ladder),
         **quality_fields(args),
     )
     if base is None or stream is None:

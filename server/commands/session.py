@@ -76,6 +76,7 @@ def run(args: argparse.Namespace) -> int:
         audio=args.audio,
         rate_control=args.rate_control,
         intra_refresh=args.intra_refresh,
+        ladder=list(args.ladder),
         **quality_fields(args),
     )
     if stream is None:
@@ -133,6 +134,7 @@ async def _main(args: argparse.Namespace, stream: StreamConfig) -> int:
             audio=stream.audio,
             rate_control=stream.rate_control,
             intra_refresh=stream.intra_refresh,
+            ladder=tuple(stream.ladder),
             quality=stream.quality,
             quality_preference=stream.quality_preference,
             min_scale=stream.min_scale,

@@ -127,6 +127,7 @@ def run(args: argparse.Namespace) -> int:
         audio=args.audio,
         rate_control=args.rate_control,
         intra_refresh=args.intra_refresh,
+        ladder=list(args.ladder),
         **quality_fields(args),
     )
     if config is None or stream is None:

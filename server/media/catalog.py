@@ -99,6 +99,19 @@ class Catalog(_CatalogModel):
         return self.model_dump_json(by_alias=True, exclude_none=True).encode()
 
 
+def video_rendition(config: EncodedConfig, fps: float, bitrate: int | None) -> VideoRendition:
+    """The catalog entry of one encoded configuration."""
+    return VideoRendition(
+        codec=config.codec,
+        container=CmafContainer(init=base64.b64encode(config.init_segment).decode("ascii")),
+        coded_width=config.width,
+        coded_height=config.height,
+        framerate=fps,
+        bitrate=bitrate,
+        jitter=math.ceil(1000 / fps),
+    )
+
+
 def video_catalog(
     *,
     codec: str,
@@ -151,18 +164,14 @@ def catalog_of(
     bitrate: int | None,
     track: str = VIDEO_TRACK,
     audio: AudioSection | None = None,
+    rungs: dict[str, VideoRendition] | None = None,
 ) -> Catalog:
-    """The catalog of one encoded configuration published on ``track``."""
-    video = video_catalog(
-        codec=config.codec,
-        init_segment=config.init_segment,
-        width=config.width,
-        height=config.height,
-        fps=fps,
-        bitrate=bitrate,
-        track=track,
-    )
-    return video if audio is None else Catalog(video=video.video, audio=audio)
+    """The catalog of one encoded configuration published on ``track``, then the
+    rendition ladder's ``rungs`` (server/media/ladder.py) in order: a viewer that takes
+    the first rendition (the player's page, older pages) plays the player's track."""
+    renditions = {track: video_rendition(config, fps, bitrate)}
+    renditions.update(rungs or {})
+    return Catalog(video=VideoSection(renditions=renditions), audio=audio)
 
 
 def video_track_name(generation: int) -> str:
@@ -180,3 +189,21 @@ def is_video_track(name: str) -> bool:
         return True
     prefix, _, number = name.partition(".")
     return prefix == VIDEO_TRACK and number.isdigit() and not number.startswith("0")
+
+
+# The rendition ladder's tracks (server/media/ladder.py): a size in the name, as a
+# rung's size never changes.
+RUNG_PREFIX = "video."
+
+
+def rung_track_name(width: int, height: int) -> str:
+    """``video.640x360``: the size in the name, as a rung's size never changes."""
+    return f"{RUNG_PREFIX}{width}x{height}"
+
+
+def is_rung_track(name: str) -> bool:
+    """Whether ``name`` is a name :func:`rung_track_name` gives."""
+    if not name.startswith(RUNG_PREFIX):
+        return False
+    width, sep, height = name[len(RUNG_PREFIX) :].partition("x")
+    return bool(sep) and width.isdigit() and height.isdigit()

@@ -113,6 +113,7 @@ async def run_game_session(
             audio=stream.audio,
             rate_control=stream.rate_control,
             intra_refresh=stream.intra_refresh,
+            ladder=tuple(stream.ladder),
             upscaler=config.upscaler,
             source=config.source,
             gamepad=config.gamepad,

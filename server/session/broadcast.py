@@ -14,6 +14,10 @@ It publishes three tracks and listens for viewers' inputs:
 - ``audio`` (when the session has sound): one hang ``legacy`` frame (varint pts in
   microseconds + an Opus packet) per 10 ms, a new group every ``AUDIO_GROUP_FRAMES``
   packets or when the pts jumps, so a late joiner starts within a tenth of a second.
+- ``video.<W>x<H>`` (with a rendition ladder, server/media/ladder.py): the spectator
+  rungs, one CMAF fragment per frame, a new group at each rung IDR (every second and at
+  the player's track's IDRs), listed after the player's track in the catalog. A new
+  subscriber of a rung asks the ladder (not the player's encoder) for a keyframe.
 - ``status``: the session's state and the result of the last control request
   (server/session/session_control.py), one JSON frame per group and a new
   group per change, so a subscriber gets the current state at once.
@@ -97,8 +101,12 @@ class GameBroadcast:
         on_keyframe_wanted: Callable[[], None],
         on_input_ended: Callable[[str], None] | None = None,
         audio: bool = False,
+        rung_tracks: tuple[str, ...] = (),
+        on_rung_keyframe_wanted: Callable[[], None] | None = None,
     ) -> None:
-        """``on_input_ended(source)``: a viewer's input broadcast ended (it left)."""
+        """``on_input_ended(source)``: a viewer's input broadcast ended (it left).
+        ``rung_tracks``: the rendition ladder's tracks; ``on_rung_keyframe_wanted``: a
+        subscriber of one of them waits for the ladder's next IDR."""
         self.name = paths.normalize(name)
         self._static_tracks = TRACKS if audio else SILENT_TRACKS
         # The video track of the size encoded now: ``video`` until the first size change
@@ -111,6 +119,9 @@ class GameBroadcast:
         self._on_input = on_input
         self._on_keyframe_wanted = on_keyframe_wanted
         self._on_input_ended = on_input_ended
+        self.rung_tracks = rung_tracks
+        self._on_rung_keyframe_wanted = on_rung_keyframe_wanted
+        self._rung_seq: dict[str, int] = dict.fromkeys(rung_tracks, -1)
         self._session: MoqSession | None = None
         self._subscribers: dict[int, _Subscriber] = {}  # request id -> state
         self._input_interest: int | None = None
@@ -130,9 +141,10 @@ class GameBroadcast:
     @property
     def tracks(self) -> tuple[str, ...]:
         """The tracks a subscriber may ask for now."""
-        if self.video_track == VIDEO_TRACK:
-            return self._static_tracks
-        return tuple(self.video_track if t == VIDEO_TRACK else t for t in self._static_tracks)
+        static: tuple[str, ...] = self._static_tracks
+        if self.video_track != VIDEO_TRACK:
+            static = tuple(self.video_track if t == VIDEO_TRACK else t for t in static)
+        return static + self.rung_tracks
 
     # -- session lifecycle ------------------------------------------------------------
 
@@ -193,6 +205,9 @@ class GameBroadcast:
             self._send_status(e.request_id)
         elif e.track == AUDIO_TRACK:
             pass  # every audio group starts clean: the subscriber joins at the next one
+        elif e.track in self.rung_tracks:
+            if self._on_rung_keyframe_wanted is not None:
+                self._on_rung_keyframe_wanted()
         else:
             self._on_keyframe_wanted()
 
@@ -323,6 +338,44 @@ class GameBroadcast:
             if sub.group_stream is not None:
                 session.finish_group(sub.group_stream)
             sub.group_stream = session.open_group(request_id, self._group_seq)
+
+    def publish_rung(self, track: str, encoded: EncodedFrame) -> None:
+        """Put one frame of a ladder rung on its subscribers' group (a new group at
+        each IDR; a subscriber that came mid-group starts at the next one)."""
+        if track not in self._rung_seq:
+            return  # a rung dropped meanwhile
+        if encoded.keyframe:
+            self._rung_seq[track] += 1
+        session = self._session
+        if session is None or session.closed:
+            return
+        subs = [(r, s) for r, s in self._subscribers.items() if s.track == track]
+        if encoded.keyframe:
+            for request_id, sub in subs:
+                if sub.group_stream is not None:
+                    session.finish_group(sub.group_stream)
+                sub.group_stream = session.open_group(request_id, self._rung_seq[track])
+        for _, sub in subs:
+            if sub.group_stream is not None:
+                session.write_frame(sub.group_stream, encoded.fragment)
+
+    def drop_rung(self, track: str, catalog_json: bytes) -> None:
+        """A rung's encoder failed: end its subscriptions and publish ``catalog_json``
+        (the catalog without it); the other tracks go on."""
+        if track not in self._rung_seq:
+            return
+        del self._rung_seq[track]
+        self.rung_tracks = tuple(t for t in self.rung_tracks if t != track)
+        session = self._session
+        for request_id, sub in list(self._subscribers.items()):
+            if sub.track != track:
+                continue
+            del self._subscribers[request_id]
+            if session is not None and not session.closed:
+                if sub.group_stream is not None:
+                    session.finish_group(sub.group_stream)
+                session.end_subscription(request_id)
+        self.set_catalog(catalog_json)
 
     def publish_audio(self, captured: CapturedAudio) -> None:
         """Put one Opus packet on the audio subscribers' group and its stamps on timing."""

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
+from av.video.frame import VideoFrame
 
 from server.frames.frame import FrameMeta
 from server.frames.ring import FrameRing
@@ -28,6 +29,9 @@ from server.media.encode import EncodedFrame, VideoEncoder
 log = logging.getLogger(__name__)
 
 READ_TIMEOUT_S = 0.2
+
+# (display RGB view, the encoder's YUV of it or None, frame id, pts, player IDR)
+LadderSink = Callable[[npt.NDArray[np.uint8], VideoFrame | None, int, int, bool], None]
 
 
 @dataclass
@@ -61,11 +65,16 @@ class CaptureThread:
         pts_origin_ns: int | None = None,
         frame_tap: Callable[[int, npt.NDArray[np.uint8]], None] | None = None,
         keep_every: Callable[[], int] | None = None,
+        ladder_sink: LadderSink | None = None,
     ) -> None:
         """``frame_tap(frame_id, color)`` sees each encoded frame's pixels (a read-only
         view, valid only during the call): tests compare them with what a browser shows.
         ``keep_every()``: encode one frame in this many (the rate control lowers the
-        frame rate when the bitrate alone cannot hold it); read before each frame."""
+        frame rate when the bitrate alone cannot hold it); read before each frame.
+        ``ladder_sink(color, yuv, frame_id, pts_us, player_idr)`` gets every frame,
+        thinned ones too (the rendition ladder serves other links than the player's),
+        while the slot is held: it must copy what it keeps of ``color``. ``yuv``: the
+        encoder's converted frame when it is at the display size, else None."""
         self.ring = ring
         self.encoder = encoder
         self.stats = CaptureStats()
@@ -75,6 +84,7 @@ class CaptureThread:
         self._last_seq = 0
         self._frame_tap = frame_tap
         self._keep_every = keep_every
+        self._ladder_sink = ladder_sink
         self._counter = 0
         self._last_pts_us: int | None = None
         self._thread = threading.Thread(target=self._run, name="capture-encode", daemon=True)
@@ -113,10 +123,6 @@ class CaptureThread:
             if self._last_seq and lease.seq > self._last_seq + 1:
                 self.stats.skipped += lease.seq - self._last_seq - 1
             self._last_seq = lease.seq
-            self._counter += 1
-            if self._keep_every is not None and self._counter % max(1, self._keep_every()):
-                self.stats.thinned += 1
-                return
             frame = display_frame_of(lease)
             meta = frame.meta  # read_meta copied the header: it outlives the lease
             pts_us = self._pts_us(meta)
@@ -124,10 +130,22 @@ class CaptureThread:
                 self.stats.not_after_last += 1
                 return
             self._last_pts_us = pts_us
+            self._counter += 1
+            if self._keep_every is not None and self._counter % max(1, self._keep_every()):
+                self.stats.thinned += 1
+                if self._ladder_sink is not None:
+                    self._ladder_sink(frame.color, None, meta.frame_id, pts_us, False)
+                return
             stamp(meta.stamps, Stage.ENCODE_START)
             encoded = self.encoder.encode(frame.color, frame_id=meta.frame_id, pts_us=pts_us)
             if self._frame_tap is not None:
                 self._frame_tap(meta.frame_id, frame.color)
+            if self._ladder_sink is not None:
+                yuv = self.encoder.last_yuv
+                whole = yuv is not None and (yuv.width, yuv.height) == frame.color.shape[1::-1]
+                self._ladder_sink(
+                    frame.color, yuv if whole else None, meta.frame_id, pts_us, encoded.keyframe
+                )
         stamp(meta.stamps, Stage.ENCODE_END)
         self.stats.frames += 1
         self._deliver(CapturedFrame(encoded, meta))

@@ -26,13 +26,14 @@ from server.frames.ring import FrameRing
 from server.game.sounds import GameSounds, SoundSource
 from server.media.audio_encode import OpusEncoder
 from server.media.catalog import (
+    VIDEO_TRACK,
     AudioSection,
     audio_section,
-    catalog_for,
     catalog_of,
     video_track_name,
 )
 from server.media.encode import EncodedConfig, EncoderConfig, VideoEncoder, encoded_size
+from server.media.ladder import RenditionLadder, RungFrame
 from server.moq.events import Event
 from server.ops.redact import redact_url
 from server.quic.client import WtConnectError
@@ -42,8 +43,10 @@ from server.session.broadcast import GameBroadcast
 from server.session.capture import CapturedFrame, CaptureThread
 from server.session.gamepad_keys import GamepadKeyMap
 from server.session.input_router import InputRouter
+from server.session.ladder_thread import LadderThread
 from server.session.quality.adapter import SessionQuality, session_quality
 from server.session.session_rate import SessionRate
+from server.stream_config import DEFAULT_GOP_S
 
 log = logging.getLogger(__name__)
 
@@ -83,6 +86,30 @@ class StreamSettings:
     min_scale: float = 1.0
     max_scale: float = 4.0
     quality_methods: tuple[str, ...] = ()
+    # The rendition ladder for spectators (server/media/ladder.py): rungs at the display
+    # size / each divisor. Empty here so library users opt in; the commands default to
+    # DEFAULT_DIVISORS unless --ladder off.
+    ladder: tuple[int, ...] = ()
+    ladder_gop_seconds: float = DEFAULT_GOP_S
+
+
+def _ladder(settings: StreamSettings, display: Size) -> RenditionLadder | None:
+    """The rendition ladder the settings ask for; None without one, or when its
+    encoders cannot open (logged: the player's track goes on alone)."""
+    if not settings.ladder:
+        return None
+    try:
+        ladder = RenditionLadder(
+            display, settings.fps, settings.ladder, gop_seconds=settings.ladder_gop_seconds
+        )
+    except (RuntimeError, ValueError, OSError):
+        log.exception("no rendition ladder: streaming the player's track alone")
+        return None
+    if not ladder.rungs:
+        return None
+    sizes = ", ".join(f"{r.track} at {r.bitrate // 1000} kbit/s" for r in ladder.rungs)
+    log.info("rendition ladder: %s, a group every %.1f s", sizes, settings.ladder_gop_seconds)
+    return ladder
 
 
 # Under intra refresh, an IDR this often anyway: a spectator the relay skipped (which
@@ -164,13 +191,19 @@ class StreamingSession:
                 )
         self._audio_section = audio
         self.audio: AudioCapture | None = None
+        self.ladder = _ladder(settings, display)
+        self._ladder_thread: LadderThread | None = None
         self.broadcast = GameBroadcast(
             settings.broadcast,
-            catalog_for(self.encoder, audio=audio).to_json(),
+            self._catalog_json(self.encoder.encoded_config, VIDEO_TRACK),
             on_input=self.router.handle,
             on_keyframe_wanted=self.encoder.request_keyframe,
             on_input_ended=self._input_ended,
             audio=audio is not None,
+            rung_tracks=self.ladder.tracks if self.ladder is not None else (),
+            on_rung_keyframe_wanted=(
+                self.ladder.request_keyframe if self.ladder is not None else None
+            ),
         )
         self.broadcast.stream_state = self.stream_state
         # The page disables what the source cannot do (a captured application: methods
@@ -191,6 +224,13 @@ class StreamingSession:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._capture: CaptureThread | None = None
         self._skipped_seen = 0
+
+    def _catalog_json(self, config: EncodedConfig, track: str) -> bytes:
+        """The catalog: the player's track ``track`` first, then the ladder's rungs."""
+        cfg = self.encoder.config
+        rungs = self.ladder.renditions() if self.ladder is not None else None
+        catalog = catalog_of(config, cfg.fps, cfg.target_bitrate, track, self._audio_section, rungs)
+        return catalog.to_json()
 
     def reconnect(self) -> None:
         """Drop the relay connection now (say, the relay was restarted): the relay loop
@@ -250,6 +290,9 @@ class StreamingSession:
                 self.sound, self.audio_encoder, self._from_audio_thread, origin_ns=origin
             )
             self.audio.start()
+        if self.ladder is not None:
+            self._ladder_thread = LadderThread(self.ladder, self._from_ladder_thread)
+            self._ladder_thread.start()
         self._capture = CaptureThread(
             self.ring_u,
             self.encoder,
@@ -257,6 +300,7 @@ class StreamingSession:
             frame_tap=self._frame_tap,
             pts_origin_ns=origin,
             keep_every=lambda: self.rate.frame_divisor,
+            ladder_sink=self._ladder_thread.submit if self._ladder_thread is not None else None,
         )
         self._capture.start()
         tasks = [
@@ -275,6 +319,8 @@ class StreamingSession:
                 task.cancel()
             await asyncio.gather(*tasks, return_exceptions=True)
             self._capture.stop()
+            if self._ladder_thread is not None:
+                self._ladder_thread.stop()
             if self.audio is not None:
                 self.audio.stop()
             if self.link is not None and not self.link.closed:
@@ -286,6 +332,22 @@ class StreamingSession:
         loop = self._loop
         if loop is not None and not loop.is_closed():
             loop.call_soon_threadsafe(self._publish, frame)
+
+    def _from_ladder_thread(self, frames: list[RungFrame], failed: list[str]) -> None:
+        loop = self._loop
+        if loop is not None and not loop.is_closed():
+            loop.call_soon_threadsafe(self._publish_rungs, frames, failed)
+
+    def _publish_rungs(self, frames: list[RungFrame], failed: list[str]) -> None:
+        for track in failed:
+            config = self.encoder.encoded_config
+            catalog = self._catalog_json(config, self.broadcast.video_track)
+            self.broadcast.drop_rung(track, catalog)
+        for frame in frames:
+            self.broadcast.publish_rung(frame.track, frame.encoded)
+        link = self.link
+        if link is not None and not link.closed:
+            link.flush()
 
     def _from_audio_thread(self, captured: CapturedAudio) -> None:
         loop = self._loop
@@ -312,9 +374,7 @@ class StreamingSession:
 
     def _switch_video(self, config: EncodedConfig) -> None:
         track = video_track_name(config.generation)
-        cfg = self.encoder.config
-        catalog = catalog_of(config, cfg.fps, cfg.target_bitrate, track, self._audio_section)
-        self.broadcast.switch_video(track, catalog.to_json())
+        self.broadcast.switch_video(track, self._catalog_json(config, track))
         self.stream_state["encoded"] = f"{config.width}x{config.height}"
         log.info(
             "encoding at %dx%d (display %dx%d) on track %s",

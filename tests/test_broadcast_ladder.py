@@ -1,0 +1,109 @@
+"""GameBroadcast with a rendition ladder, over the in-memory moq pipe: rung tracks are
+served from their IDRs, ask the ladder (not the player's encoder) for a keyframe, and a
+dropped rung ends its subscriptions while the player's track goes on."""
+
+from __future__ import annotations
+
+import json
+
+from server.media.encode import EncodedFrame
+from server.moq import events as ev
+from server.moq.errors import ErrorCode
+from server.session.broadcast import GameBroadcast
+from tests.moq_pipe import Pipe
+
+RUNGS = ("video.320x180", "video.160x90")
+CATALOG = json.dumps({"video": {"renditions": {key: {} for key in ("video", *RUNGS)}}}).encode()
+
+
+class LadderHarness:
+    def __init__(self) -> None:
+        self.pipe = Pipe()
+        self.player_keyframes = 0
+        self.rung_keyframes = 0
+        self.broadcast = GameBroadcast(
+            "game",
+            CATALOG,
+            on_input=lambda _path, _payload: None,
+            on_keyframe_wanted=self._player_keyframe,
+            rung_tracks=RUNGS,
+            on_rung_keyframe_wanted=self._rung_keyframe,
+        )
+        self.broadcast.attach(self.pipe.client)
+        self.relay_events: list[ev.Event] = []
+        self.sync()
+
+    def _player_keyframe(self) -> None:
+        self.player_keyframes += 1
+
+    def _rung_keyframe(self) -> None:
+        self.rung_keyframes += 1
+
+    def sync(self) -> None:
+        for _ in range(10):
+            self.pipe.flush()
+            self.broadcast.handle(self.pipe.client.take_events())
+            self.relay_events += self.pipe.server.take_events()
+            if not self.pipe.flush():
+                break
+
+    def frames(self, subscription: int) -> list[tuple[int, bytes]]:
+        return [
+            (e.sequence, e.payload)
+            for e in self.relay_events
+            if isinstance(e, ev.FrameReceived) and e.subscription_id == subscription
+        ]
+
+    def rung(self, track: str, frame_id: int, keyframe: bool) -> None:
+        payload = f"{track}:{frame_id}".encode()
+        encoded = EncodedFrame(frame_id, frame_id * 1000, keyframe, payload, 1.0, 0.1, 0.9)
+        self.broadcast.publish_rung(track, encoded)
+        self.sync()
+
+
+def test_rung_subscribers_get_groups_from_rung_idrs_and_ask_the_ladder() -> None:
+    h = LadderHarness()
+    small = h.pipe.server.subscribe("game", "video.160x90")
+    h.sync()
+    assert (h.rung_keyframes, h.player_keyframes) == (1, 0)
+    h.rung("video.160x90", 1, keyframe=False)  # mid-group: waits for the next IDR
+    h.rung("video.160x90", 2, keyframe=True)
+    h.rung("video.320x180", 2, keyframe=True)  # another rung's frame: not this track's
+    h.rung("video.160x90", 3, keyframe=False)
+    h.rung("video.160x90", 4, keyframe=True)
+    assert h.frames(small) == [
+        (0, b"video.160x90:2"),
+        (0, b"video.160x90:3"),
+        (1, b"video.160x90:4"),
+    ]
+
+
+def test_unknown_rungs_are_refused_and_listed_rungs_counted() -> None:
+    h = LadderHarness()
+    h.pipe.server.subscribe("game", "video.1280x720")
+    h.pipe.server.subscribe("game", "video.320x180")
+    h.sync()
+    refused = [e for e in h.relay_events if isinstance(e, ev.SubscribeClosed)]
+    assert [e.error_code for e in refused] == [ErrorCode.NOT_FOUND]
+    assert h.broadcast.stats.subscribers["video.320x180"] == 1
+
+
+def test_a_dropped_rung_ends_its_subscribers_and_republishes_the_catalog() -> None:
+    h = LadderHarness()
+    catalog = h.pipe.server.subscribe("game", "catalog.json")
+    small = h.pipe.server.subscribe("game", "video.160x90")
+    big = h.pipe.server.subscribe("game", "video.320x180")
+    h.sync()
+    h.rung("video.160x90", 1, keyframe=True)
+    h.rung("video.320x180", 1, keyframe=True)
+    without = json.dumps({"video": {"renditions": {"video": {}, "video.320x180": {}}}}).encode()
+    h.broadcast.drop_rung("video.160x90", without)
+    h.sync()
+    ended = [e.subscription_id for e in h.relay_events if isinstance(e, ev.SubscribeClosed)]
+    assert ended == [small]
+    assert h.frames(catalog)[-1] == (1, without)
+    assert "video.160x90" not in h.broadcast.tracks
+    h.rung("video.160x90", 2, keyframe=True)  # a late frame of the dropped rung: ignored
+    h.rung("video.320x180", 2, keyframe=True)
+    assert h.frames(big)[-1] == (1, b"video.320x180:2")
+    assert h.frames(small) == [(0, b"video.160x90:1")]
