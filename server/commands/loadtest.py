@@ -74,6 +74,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--player", action="store_true", help="with --feedback: viewer 0 reports as the player"
     )
+    parser.add_argument(
+        "--rendition",
+        default="first",
+        help="video rendition to watch: first (the player's track, default), smallest (the"
+        " lowest rung of the rendition ladder, as a spectator on a narrow link), or a track"
+        " name from the catalog such as video.640x360",
+    )
     group = parser.add_argument_group("synthetic publisher (instead of a game session)")
     group.add_argument(
         "--synthetic-publisher",
@@ -108,6 +115,7 @@ def config_from(args: argparse.Namespace) -> LoadConfig:
         token=args.token,
         feedback=args.feedback or args.player,
         player=args.player,
+        rendition=args.rendition,
     )
 
 

@@ -62,6 +62,7 @@ class LoadConfig:
     token: str | None = None  # the viewers' relay token (?jwt=); None: anonymous viewers
     feedback: bool = False  # viewers publish <broadcast>/input/<id> and send feedback
     player: bool = False  # ... viewer 0 as the player
+    rendition: str = "first"  # the video rendition watched (loadtest/viewer.py choose_rendition)
 
     def problem(self) -> str | None:
         """What is wrong with the settings, naming the option; None when usable."""

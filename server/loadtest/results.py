@@ -73,6 +73,11 @@ def summary(result: LoadResult) -> dict[str, Any]:
         "publish_to_receive_ms": pooled,
         "render_end_to_receive_ms": percentiles(render_end),
         "media_delay_ms": percentiles(media),
+        # connect start -> first video frame (a group's first frame: a keyframe), the
+        # join time a viewer sees, connection setup included
+        "first_frame_ms": percentiles(
+            [s.first_frame_ms for s in stats if s.first_frame_ms is not None]
+        ),
         "median_ms": pooled.get("p50"),
         "p95_ms": pooled.get("p95"),
         "relay_cpu_percent": _round(result.relay_cpu_percent),
@@ -93,6 +98,7 @@ def config_dict(result: LoadResult) -> dict[str, Any]:
     return {
         "relay": cfg.relay_url,
         "broadcast": cfg.broadcast,
+        "rendition": cfg.rendition,
         "viewers": cfg.viewers,
         "duration_s": cfg.duration_s,
         "ramp_per_s": cfg.ramp_per_s,

@@ -134,6 +134,7 @@ async def run_load(
         config.token,
         feedback=config.feedback,
         player=config.player,
+        rendition=config.rendition,
     )
     board: ProgressBoard | None = None
 

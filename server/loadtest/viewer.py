@@ -30,6 +30,7 @@ import struct
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 from server.media.cmaf_read import TrackDefaults, parse_fragment, track_defaults, track_timescales
 from server.moq.events import (
@@ -71,6 +72,9 @@ class ViewerConfig:
     # allow publishing there, as the player's does); ``player``: viewer 0 is the player.
     feedback: bool = False
     player: bool = False
+    # Which video rendition of the catalog to watch: "first" (the player's track, as the
+    # player's page), "smallest" (the lowest rung of a rendition ladder), or a track name.
+    rendition: str = "first"
 
 
 @dataclass(frozen=True)
@@ -245,9 +249,12 @@ class LoadViewer:
     def _on_catalog(self, link: MoqLink, payload: bytes) -> None:
         try:
             renditions = json.loads(payload)["video"]["renditions"]
-            video_track = next(iter(renditions))
+            video_track = choose_rendition(renditions, self.config.rendition)
         except (ValueError, KeyError, TypeError, StopIteration):
             self.stats.error = "catalog without a video rendition"
+            return
+        if video_track is None:
+            self.stats.error = f"catalog has no rendition {self.config.rendition!r}"
             return
         self.stats.catalog = True
         if self._video_track is None:
@@ -275,6 +282,22 @@ class LoadViewer:
         timescale = next(iter(timescales.values()), 0)
         if timescale > 0:
             self._timescale = timescale
+
+
+def choose_rendition(renditions: dict[str, Any], wanted: str) -> str | None:
+    """The track of the rendition ``wanted`` names ("first", "smallest" by coded pixels,
+    or a track name), None when the catalog has no such track. StopIteration: none."""
+    if wanted == "first":
+        return str(next(iter(renditions)))
+    if wanted == "smallest":
+
+        def pixels(track: str) -> int:
+            entry = renditions[track]
+            size = entry.get("codedWidth", 0) * entry.get("codedHeight", 0)
+            return size if isinstance(size, int) and size > 0 else 1 << 62
+
+        return min(map(str, renditions), key=pixels)
+    return wanted if wanted in renditions else None
 
 
 def _raise_receive_buffer(link: MoqLink) -> None:
