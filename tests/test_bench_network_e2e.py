@@ -2,8 +2,9 @@
 through the emulator in headless Chromium with one load-test viewer beside it, at
 small sizes. Checked: the report's shape (every figure is there), the page's traffic
 went through the emulator, and the shaped profile's series carries its capacity.
-Figures themselves are not judged: the machine is shared and the session's rate
-control is changing.
+Then 5 s of ``lan`` with two spectators (``--spectators lan,lte``), each behind its own
+emulator: each has a first picture, a delivered ratio and freezes. Figures themselves
+are not judged: the machine is shared and the session's rate control is changing.
 """
 
 from __future__ import annotations
@@ -54,3 +55,35 @@ def test_short_run_reports_every_figure(tmp_path: Path) -> None:
     assert [r["name"] for r in report["ratios"]] == ["lan: delivered fps", "lte: delivered fps"]
     assert "lte" in table(report["cases"])
     assert plot_path.stat().st_size > 0
+
+
+def test_short_run_with_spectators_on_their_own_links(tmp_path: Path) -> None:
+    """One profile for the player and two tokenless spectators, lan and lte, each behind
+    its own emulator, joining as the window opens."""
+    report_path = tmp_path / "network.json"
+    argv = ["bench", "network", "--profile", "lan", "--spectators", "lan,lte", "--seconds", "5"]
+    argv += ["--warmup", "2", "--render-size", "160x90", "--json", str(report_path)]
+    assert main(argv) == 0
+    report = json.loads(report_path.read_text())
+    assert report["config"]["spectators"] == ["lan", "lte"]
+    (case,) = report["cases"]
+    assert case["frames_shown"] > 0 and case["delivered_ratio"] is not None  # the player
+    spectators = case["spectators"]
+    assert [s["profile"] for s in spectators] == ["lan", "lte"]
+    for s in spectators:
+        assert isinstance(s["first_picture_ms"], float) and s["first_picture_ms"] > 0, s
+        # As the player's: frames in flight at the window's edges can put it a little over 1.
+        assert 0 <= s["delivered_ratio"] <= 1.2, s
+        assert {"count", "total_ms", "longest_ms"} <= set(s["freezes"])
+        assert s["link_down_bytes"] > 0  # it played through its own emulator
+        assert "rendition_seconds" in s and "rendition_switches" in s  # null: an older page
+        assert s["glass_to_glass"]["count"] >= 0
+    summary = report["spectators"]
+    assert summary["count"] == 2 and summary["without_picture"] == []
+    for key in ("worst_first_picture_ms", "worst_delivered_ratio", "worst_longest_freeze_ms"):
+        assert summary[key]["player_profile"] == "lan"
+    assert [r["name"] for r in report["ratios"]] == [
+        "lan: delivered fps",
+        "lan: spectator lan: delivered fps",
+        "lan: spectator lte: delivered fps",
+    ]

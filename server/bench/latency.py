@@ -82,10 +82,12 @@ class LiveStack:
         rate_control: bool = True,
         intra_refresh: bool = True,
         relay_args: tuple[str, ...] = (),
+        ladder: tuple[int, ...] = (),
     ) -> None:
         """``audio``: publish sound too; ``sound``: what it plays (default: the game's).
-        ``rate_control``, ``intra_refresh``: the session's (StreamSettings);
-        ``relay_args``: more ``upcast relay`` options."""
+        ``rate_control``, ``intra_refresh``, ``ladder``: the session's (StreamSettings;
+        no rendition ladder by default, as there); ``relay_args``: more ``upcast relay``
+        options."""
         self.config = config
         self._audio = audio
         self._sound = sound
@@ -100,6 +102,7 @@ class LiveStack:
         self.relay = RelayProcess("::", port, web_root, auth_key=key_path, extra_args=relay_args)
         self._rate_control = rate_control
         self._intra_refresh = intra_refresh
+        self._ladder = ladder
         self.stack = LocalStack(config, app_sound=audio)
         self.endpoint: RelayEndpoint | None = None
         self.session: StreamingSession | None = None
@@ -164,6 +167,7 @@ class LiveStack:
             audio=self._audio,
             rate_control=self._rate_control,
             intra_refresh=self._intra_refresh,
+            ladder=self._ladder,
         )
         if self._sound is None and self._audio and self.config.source == "x11":
             from server.session.pulse_monitor import PulseMonitor

@@ -16,6 +16,8 @@ BENCHMARKS: dict[str, str] = {
     "serve": "upcast serve with N sessions: fps each holds, before and after a worker is killed",
     "adaptive": "adaptive quality against fixed settings, 1-N sessions, a CPU hog mid-run: "
     "viewer fps held, switches, the table's expected picture",
+    "ladder": "the spectators' rendition ladder: encode CPU per rung against the player's "
+    "track, bitrate against cap, PSNR each rung shows at the display size",
     "encode_scale": "encoding below the display size: encode ms saved against PSNR lost "
     "(the decoded picture drawn at display size) per scene and render scale",
     "compile_start": "upscaler compile=True at a worker start: inductor cache cold and warm",
@@ -26,7 +28,8 @@ BENCHMARKS: dict[str, str] = {
     "app": "real programs (SuperTux, Neverball) as source x11 in headless Chromium: fps, "
     "capture ms, input-to-photon, received PSNR, a screenshot",
     "network": "the player over emulated links (lan, cable, wifi, lte, drop, blackout): "
-    "delivered fps, freezes, glass-to-glass, bitrate against capacity, received PSNR",
+    "delivered fps, freezes, glass-to-glass, bitrate against capacity, received PSNR; "
+    "--spectators: view-only pages each on its own link, first picture and renditions too",
     "congestion": "QUIC congestion controllers (reno, cubic, upcast-media) over lossy links: "
     "goodput and chunks on time for a video-like sender",
     "relay": "relay data-plane CPU per viewer, upcast relay (aioquic) against moq-dev's Rust "

@@ -18,7 +18,11 @@ network emulator goes between the relay and a headless Chromium player (and
 - received PSNR: canvas snapshots (one a second) against the thumbnail of the
   frame the session encoded with the same id (server/serve/snapshots.py);
 - the page's own counters over the window (lost, skipped, freezes, late, ...)
-  where the page exposes them, and the load-test viewers' counts.
+  where the page exposes them, and the load-test viewers' counts;
+- with ``--spectators lte,wifi``: a tokenless spectator page per listed profile, each
+  behind an emulated link of its own, joining as the window opens: its first picture,
+  delivered ratio, freezes, renditions played and glass-to-glass
+  (server/bench/network/spectators.py), and the worst of them at the report's top.
 
 The JSON report (DESIGN.md), a table, and with ``--plot`` a figure of bitrate and
 capacity over time per profile.
@@ -35,6 +39,7 @@ from server.ops.browser_paths import CHROMIUM, CHROMIUM_ARGS, WEB_ROOT
 from server.ops.report import BenchReport
 
 MAX_VIEWERS = 200
+MAX_SPECTATORS = 8  # each one is a Chromium page and an emulator process of its own
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -47,6 +52,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seconds", type=float, default=30.0, help="seconds measured per profile")
     parser.add_argument("--warmup", type=float, default=3.0, help="seconds played before measuring")
     parser.add_argument("--viewers", type=int, default=0, help="load-test viewers on the link too")
+    parser.add_argument(
+        "--spectators",
+        action="append",
+        default=None,
+        metavar="PROFILE[,PROFILE...]",
+        help="beside the player, a view-only page (no token) per listed link profile or "
+        "schedule file, each behind an emulated link of its own, joining as the window "
+        f"opens; repeatable, at most {MAX_SPECTATORS} (default: none)",
+    )
+    parser.add_argument(
+        "--ladder",
+        default=None,
+        metavar="DIVISORS",
+        help="the session's rendition ladder for spectators, as upcast up --ladder (2,4 or "
+        "'off'; default: as upcast up with --spectators, off without them)",
+    )
     parser.add_argument("--json", type=Path, default=None, help="write the JSON report here")
     parser.add_argument("--plot", type=Path, default=None, help="PNG: bitrate and capacity")
     parser.add_argument("--render-size", default="640x360")
@@ -79,6 +100,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 DEFAULT_PROFILES = ("lan", "cable", "wifi", "lte", "drop")
 
 
+def spectator_profiles(values: list[str] | None) -> list[str]:
+    """``--spectators`` values (repeated, each a comma list) -> profile names in order."""
+    return [name.strip() for value in values or [] for name in value.split(",") if name.strip()]
+
+
+def ladder_divisors(text: str | None, spectators: list[str] | tuple[str, ...]) -> tuple[int, ...]:
+    """The rendition ladder the session runs: ``--ladder``, else upcast up's default when
+    there are spectators (the rungs are theirs), else none (the player alone, as before)."""
+    from server.stream_config import DEFAULT_DIVISORS, parse_divisors
+
+    if text is None:
+        return DEFAULT_DIVISORS if spectators else ()
+    return parse_divisors(text)
+
+
 def _problem(args: argparse.Namespace) -> str | None:
     from server.net import ProfileError, resolve
 
@@ -87,6 +123,20 @@ def _problem(args: argparse.Namespace) -> str | None:
             resolve(name)
         except ProfileError as exc:
             return f"--profile: {exc}"
+    spectators = spectator_profiles(args.spectators)
+    if args.spectators is not None and not spectators:
+        return "--spectators: name at least one profile"
+    for name in spectators:
+        try:
+            resolve(name)
+        except ProfileError as exc:
+            return f"--spectators: {exc}"
+    if len(spectators) > MAX_SPECTATORS:
+        return f"--spectators: at most {MAX_SPECTATORS}, got {len(spectators)}"
+    try:
+        ladder_divisors(args.ladder, spectators)
+    except ValueError as exc:
+        return f"--ladder: {exc}"
     try:
         Size.parse(args.render_size)
         if args.display_size is not None:
@@ -123,10 +173,13 @@ def run(args: argparse.Namespace) -> int:
     from playwright.sync_api import sync_playwright
 
     from server.bench.network.measure import NetworkRun, measure
-    from server.bench.network.table import table
+    from server.bench.network.spectators import worst
+    from server.bench.network.table import spectator_table, table
     from server.stack.local import SessionConfig
 
     profiles = list(args.profile or DEFAULT_PROFILES)
+    spectators = tuple(spectator_profiles(args.spectators))
+    ladder = ladder_divisors(args.ladder, spectators)
     session = SessionConfig(
         scene=args.scene,
         render_size=args.render_size,
@@ -153,6 +206,9 @@ def run(args: argparse.Namespace) -> int:
             "congestion_control": args.congestion_control or "relay default",
             "transport": "headless Chromium (WebTransport) -> user-space network emulator "
             "(server/net, loopback) -> relay process",
+            # Only with --spectators: a report without them keeps its earlier shape.
+            **({"spectators": list(spectators)} if spectators else {}),
+            **({"ladder": list(ladder)} if spectators or args.ladder is not None else {}),
         },
     )
     with sync_playwright() as pw:
@@ -170,6 +226,8 @@ def run(args: argparse.Namespace) -> int:
                     rate_control=args.rate_control,
                     intra_refresh=args.intra_refresh,
                     congestion_control=args.congestion_control,
+                    spectators=spectators,
+                    ladder=ladder,
                 )
                 case = report.add_case(**measure(run_, browser))
                 if case["delivered_ratio"] is not None:
@@ -179,10 +237,22 @@ def run(args: argparse.Namespace) -> int:
                         "server_fps",
                         case["delivered_ratio"],
                     )
+                for watcher in case.get("spectators") or []:
+                    if watcher["delivered_ratio"] is not None:
+                        report.add_ratio(
+                            f"{profile}: spectator {watcher['name']}: delivered fps",
+                            "page_fps",
+                            "server_fps",
+                            watcher["delivered_ratio"],
+                        )
         finally:
             browser.close()
     report.notes.extend(_notes())
     print(table(report.cases))
+    if spectators:
+        report.sections["spectators"] = worst(report.cases)
+        report.notes.extend(_spectator_notes())
+        print(spectator_table(report.cases))
     if args.json is not None:
         report.write(args.json)
         print(f"wrote {args.json}")
@@ -208,4 +278,23 @@ def _notes() -> list[str]:
         "session encoded with the same id",
         "page_counters: differences over the window of the page's own stats() counters, "
         "where the page has them",
+    ]
+
+
+def _spectator_notes() -> list[str]:
+    return [
+        "spectators: a page without a token per --spectators profile, each behind its own "
+        "emulator (own schedule, restarted at its join, own loss seed), joining right after "
+        "the window's first sample (joined_at_s); first_picture_ms = navigation start -> "
+        "first video frame drawn on its canvas (page clock: loading the page, certificate, "
+        "QUIC handshake, catalog, subscription, first group, decode)",
+        "spectators' delivered_ratio = frames the page presented / frames the session "
+        "published on the rendition it played (per read interval, the track it named; a "
+        "ladder rung gets every game frame), from its first read after its first picture "
+        "(reads 1 s apart) to the window's end; freezes from its first picture to the "
+        "window's end (starts_s after the first picture)",
+        "spectators' rendition, rendition_seconds (since its join), rendition_switches and "
+        "abr: the page's own stats (null from a page without them)",
+        "top-level spectators: the worst first picture, delivered ratio and longest freeze "
+        "over every spectator of every profile",
     ]

@@ -9,7 +9,9 @@ fetches the relay's certificate hash over TCP from the port it connects to). The
 page itself is served by the relay directly; its ``port`` parameter makes it
 connect to the emulator instead (``http://localhost:EMU/``: Chromium resolves
 localhost to ::1, where the emulator listens too). Load-test viewers, if any,
-connect to the emulator as well and share the link with the page.
+connect to the emulator as well and share the link with the page. Spectator pages
+(``--spectators``) each get an emulator of their own and join as the window opens
+(server/bench/network/spectators.py).
 
 Timeline: the page connects, plays ``warmup`` seconds, then the window of
 ``seconds`` opens; at its start the emulator's schedule restarts, so a profile's
@@ -33,6 +35,7 @@ from server.bench.network.page import (
     counter_deltas,
 )
 from server.bench.network.series import SAMPLE_EVERY_S, RateSeries, capacity_bps
+from server.bench.network.spectators import Spectators, published_frames
 from server.bench.network.viewers import SpectatorViewers, viewers_summary
 from server.bench.page_stats import read_latency, read_stats
 from server.loadtest.plan import RunPlan
@@ -63,6 +66,8 @@ class NetworkRun:
     rate_control: bool = True
     intra_refresh: bool = True
     congestion_control: str | None = None  # the relay's QUIC sender; None: its default
+    spectators: tuple[str, ...] = ()  # a spectator page per profile, each on its own link
+    ladder: tuple[int, ...] = ()  # the session's rendition ladder (divisors); () none
 
 
 def _stream_state(live: LiveStack, key: str) -> int | None:
@@ -93,6 +98,7 @@ def measure(run: NetworkRun, browser: Any) -> dict[str, Any]:
             relay_args=()
             if run.congestion_control is None
             else ("--congestion-control", run.congestion_control),
+            ladder=run.ladder,
         ) as live,
         EmulatorProcess(
             listen=("localhost", 0),
@@ -100,6 +106,7 @@ def measure(run: NetworkRun, browser: Any) -> dict[str, Any]:
             schedule=schedule,
             tcp_passthrough=True,
         ) as net,
+        Spectators(run.spectators).start_links(live.port) as watchers,
     ):
         assert live.endpoint is not None and live.session is not None
         session = live.session
@@ -127,6 +134,7 @@ def measure(run: NetworkRun, browser: Any) -> dict[str, Any]:
                 "() => window.upcast && window.upcast.stats().framesPresented > 0",
                 timeout=CONNECT_TIMEOUT_S * 1000,
             )
+            watchers.prepare(browser)
             t0 = time.monotonic() + run.warmup_s
             t_end = t0 + run.seconds
             if spectators is not None:
@@ -168,6 +176,11 @@ def measure(run: NetworkRun, browser: Any) -> dict[str, Any]:
                 if now >= t_end:
                     break
                 next_sample = min(max(next_sample + SAMPLE_EVERY_S, now), t_end)
+                if run.spectators:
+                    # They join after the window's first sample, so that it is on time.
+                    if not watchers.joined:
+                        watchers.join(live.port, live.broadcast, t0)
+                    watchers.read(now, published_frames(session))
                 live.check()
                 last = read_stats(page)
                 collector.update(last["latency"])
@@ -187,12 +200,14 @@ def measure(run: NetworkRun, browser: Any) -> dict[str, Any]:
             shown.finish(tail["now"])
             end = read_stats(page)
             link_end = net.stats()
+            if run.spectators:
+                watchers.finish(published_frames(session))
         finally:
             context.close()
         viewers = spectators.finish() if spectators is not None else []
     presented = end["framesPresented"] - first["framesPresented"]
     late = link_end["release_late_ms"].get("p99")
-    notes = []
+    notes = watchers.notes(LATE_RELEASE_NOTE_MS)
     if late is not None and late > LATE_RELEASE_NOTE_MS:
         notes.append(
             f"the emulator released packets late (p99 {late:.0f} ms after their due time):"
@@ -226,6 +241,7 @@ def measure(run: NetworkRun, browser: Any) -> dict[str, Any]:
         ],
         "link": {k: link_end[k] for k in ("down", "up", "release_late_ms", "send_errors")},
         "viewers": viewers_summary(viewers) if run.viewers else None,
+        **({"spectators": watchers.summary()} if run.spectators else {}),
         "notes": notes,
     }
 

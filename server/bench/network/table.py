@@ -1,4 +1,5 @@
-"""The printed table of ``upcast bench network``: one row per profile."""
+"""The printed tables of ``upcast bench network``: one row per profile, then (with
+``--spectators``) one per spectator."""
 
 from __future__ import annotations
 
@@ -78,4 +79,57 @@ def table(cases: list[dict[str, Any]]) -> str:
     for case in cases:
         cells = row(case)
         lines.append(" ".join(f"{c:>{w}}" for c, (_, w) in zip(cells, COLUMNS, strict=True)))
+    return "\n".join(lines)
+
+
+SPECTATOR_COLUMNS = (
+    ("profile", 10),
+    ("spectator", 10),
+    ("first ms", 9),
+    ("fps shown", 10),
+    ("ratio", 6),
+    ("freezes", 8),
+    ("longest", 8),
+    ("g2g p50", 8),
+    ("g2g p95", 8),
+    ("rendition (most s)", 20),
+    ("switches", 9),
+)
+
+
+def _rendition(spectator: dict[str, Any]) -> str:
+    """The rendition it spent most time on, and its seconds (``-``: the page did not say)."""
+    seconds = spectator.get("rendition_seconds")
+    if not seconds:
+        return "-"
+    track, s = max(seconds.items(), key=lambda item: item[1])
+    return f"{track} {s:.0f}s"
+
+
+def spectator_row(profile: str, spectator: dict[str, Any]) -> list[str]:
+    freezes = spectator["freezes"]
+    return [
+        profile,
+        spectator["name"],
+        _num(spectator["first_picture_ms"], 0),
+        _num(spectator.get("page_fps")),
+        _num(spectator["delivered_ratio"], 2),
+        str(freezes["count"]),
+        _num(freezes["longest_ms"], 0),
+        _num(spectator["median_ms"]),
+        _num(spectator["p95_ms"]),
+        _rendition(spectator),
+        _num(spectator.get("rendition_switches")),
+    ]
+
+
+def spectator_table(cases: list[dict[str, Any]]) -> str:
+    """One row per spectator of each profile's run (the player's link first)."""
+    lines = [" ".join(f"{name:>{width}}" for name, width in SPECTATOR_COLUMNS)]
+    for case in cases:
+        for spectator in case.get("spectators") or []:
+            cells = spectator_row(case["name"], spectator)
+            lines.append(
+                " ".join(f"{c:>{w}}" for c, (_, w) in zip(cells, SPECTATOR_COLUMNS, strict=True))
+            )
     return "\n".join(lines)
