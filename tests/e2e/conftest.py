@@ -61,7 +61,14 @@ class Live:
 
 
 @contextlib.contextmanager
-def start_live(scene: str, *, fps: float = FPS, frame_generation: bool = False) -> Iterator[Live]:
+def start_live(
+    scene: str,
+    *,
+    fps: float = FPS,
+    frame_generation: bool = False,
+    ladder: tuple[int, ...] = (),
+) -> Iterator[Live]:
+    """``ladder``: the spectators' rendition ladder divisors (none by default)."""
     tap = FrameTap()
     config = SessionConfig(
         scene=scene,
@@ -70,7 +77,7 @@ def start_live(scene: str, *, fps: float = FPS, frame_generation: bool = False) 
         fps=fps,
         frame_generation=frame_generation,
     )
-    with LiveStack(config, frame_tap=tap) as stack:
+    with LiveStack(config, frame_tap=tap, ladder=ladder) as stack:
         yield Live(stack, tap)
         stack.check()
 
