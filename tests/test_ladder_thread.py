@@ -97,3 +97,29 @@ def test_the_rgb_is_copied_before_the_ring_slot_is_reused() -> None:
     assert done.wait(5.0)
     thread.stop()
     assert seen == [7]
+
+
+def test_the_ladder_metrics_count_each_rungs_frames_bytes_and_cpu() -> None:
+    from prometheus_client import CollectorRegistry
+
+    from server.frames.frame import Size
+    from server.media.ladder import RenditionLadder
+    from server.session.ladder_metrics import LadderMetrics
+
+    registry = CollectorRegistry()
+    ladder = RenditionLadder(Size(128, 72), 30.0, (2, 4))
+    thread = LadderThread(ladder, lambda frames, failed: None)
+    metrics = LadderMetrics(registry, ladder, thread)
+    sizes = {}
+    for i in range(3):
+        frames, _ = ladder.encode(np.full((72, 128, 3), 40 * i, np.uint8), i, i * 33_333)
+        metrics.published(frames)
+        for f in frames:
+            sizes[f.track] = sizes.get(f.track, 0) + len(f.encoded.fragment)
+    for track in ("video.64x36", "video.32x18"):
+        labels = {"track": track}
+        assert registry.get_sample_value("upcast_ladder_frames_total", labels) == 3
+        assert registry.get_sample_value("upcast_ladder_bytes_total", labels) == sizes[track]
+        cpu = registry.get_sample_value("upcast_ladder_cpu_seconds", labels)
+        assert cpu is not None and cpu > 0
+    assert registry.get_sample_value("upcast_ladder_skipped_frames") == 0

@@ -43,6 +43,7 @@ from server.session.broadcast import GameBroadcast
 from server.session.capture import CapturedFrame, CaptureThread
 from server.session.gamepad_keys import GamepadKeyMap
 from server.session.input_router import InputRouter
+from server.session.ladder_metrics import LadderMetrics
 from server.session.ladder_thread import LadderThread
 from server.session.quality.adapter import SessionQuality, session_quality
 from server.session.session_rate import SessionRate
@@ -193,6 +194,8 @@ class StreamingSession:
         self.audio: AudioCapture | None = None
         self.ladder = _ladder(settings, display)
         self._ladder_thread: LadderThread | None = None
+        self._ladder_metrics: LadderMetrics | None = None
+        self._registry = registry
         self.broadcast = GameBroadcast(
             settings.broadcast,
             self._catalog_json(self.encoder.encoded_config, VIDEO_TRACK),
@@ -292,6 +295,10 @@ class StreamingSession:
             self.audio.start()
         if self.ladder is not None:
             self._ladder_thread = LadderThread(self.ladder, self._from_ladder_thread)
+            if self._registry is not None:
+                self._ladder_metrics = LadderMetrics(
+                    self._registry, self.ladder, self._ladder_thread
+                )
             self._ladder_thread.start()
         self._capture = CaptureThread(
             self.ring_u,
@@ -345,6 +352,8 @@ class StreamingSession:
             self.broadcast.drop_rung(track, catalog)
         for frame in frames:
             self.broadcast.publish_rung(frame.track, frame.encoded)
+        if self._ladder_metrics is not None:
+            self._ladder_metrics.published(frames)
         link = self.link
         if link is not None and not link.closed:
             link.flush()
