@@ -107,3 +107,22 @@ def test_a_dropped_rung_ends_its_subscribers_and_republishes_the_catalog() -> No
     h.rung("video.320x180", 2, keyframe=True)
     assert h.frames(big)[-1] == (1, b"video.320x180:2")
     assert h.frames(small) == [(0, b"video.160x90:1")]
+
+
+def test_the_ladder_is_told_which_rungs_someone_watches() -> None:
+    watched: list[frozenset[str]] = []
+    h = LadderHarness()
+    h.broadcast._on_rungs_watched = watched.append
+    small = h.pipe.server.subscribe("game", "video.160x90")
+    h.sync()
+    h.pipe.server.subscribe("game", "video.320x180")
+    h.sync()
+    h.pipe.server.unsubscribe(small)
+    h.sync()
+    h.broadcast.detach()  # the relay connection is gone: nobody watches
+    assert watched == [
+        frozenset({"video.160x90"}),
+        frozenset({"video.160x90", "video.320x180"}),
+        frozenset({"video.320x180"}),
+        frozenset(),
+    ]

@@ -210,3 +210,22 @@ def test_a_frame_of_the_wrong_size_is_refused_with_its_size() -> None:
         ladder.encode(small.last_yuv, 0, 0)
     with pytest.raises(ValueError, match="yuv420p 320x180"):
         ladder.rungs[0].encoder.encode_yuv(small.last_yuv.reformat(width=64, height=36), 0, 0)
+
+
+def test_only_watched_rungs_are_encoded_and_a_resumed_one_starts_at_an_idr() -> None:
+    ladder = RenditionLadder(DISPLAY, FPS, (2, 4), gop_seconds=10.0)
+    ladder.set_wanted(frozenset())
+    assert ladder.idle
+    frames, _ = ladder.encode(scene(0), 0, 1_000_000)
+    assert frames == [] and ladder.stats.idle_frames == 1
+    # Only the small rung is watched: the big one scales (the small one comes from it)
+    # but encodes nothing.
+    ladder.set_wanted(frozenset({"video.160x90"}))
+    ladder.request_keyframe()  # what a new subscription asks
+    frames, _ = ladder.encode(scene(1), 1, 1_000_000 + FRAME_US)
+    assert [(f.track, f.encoded.keyframe) for f in frames] == [("video.160x90", True)]
+    frames, _ = ladder.encode(scene(2), 2, 1_000_000 + 2 * FRAME_US)
+    assert [(f.track, f.encoded.keyframe) for f in frames] == [("video.160x90", False)]
+    assert ladder.rungs[0].frames == 0 and ladder.rungs[1].frames == 2
+    ladder.set_wanted(None)  # every rung (the benchmark's case)
+    assert not ladder.idle

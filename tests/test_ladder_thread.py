@@ -15,6 +15,8 @@ from server.session.ladder_thread import LadderThread
 class GatedLadder:
     """Stands in for RenditionLadder: records what it was given, waits on a gate."""
 
+    idle = False
+
     def __init__(self) -> None:
         self.calls: list[tuple[int, bool]] = []
         self.gate = threading.Event()
@@ -123,3 +125,11 @@ def test_the_ladder_metrics_count_each_rungs_frames_bytes_and_cpu() -> None:
         cpu = registry.get_sample_value("upcast_ladder_cpu_seconds", labels)
         assert cpu is not None and cpu > 0
     assert registry.get_sample_value("upcast_ladder_skipped_frames") == 0
+
+
+def test_nothing_is_queued_or_copied_while_no_rung_is_watched() -> None:
+    ladder = GatedLadder()
+    ladder.idle = True
+    thread = LadderThread(ladder, lambda frames, failed: None)  # type: ignore[arg-type]
+    thread.submit(np.zeros((4, 4, 3), np.uint8), None, 0, 0, True)
+    assert thread.stats.submitted == 0 and thread._pending is None

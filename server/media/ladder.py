@@ -19,6 +19,10 @@ Keyframes, and so groups, are decided for all rungs at once:
 - on request (a new subscriber of a rung, the relay's nudge), at most once per
   ``keyframe_min_interval_ms``, as the player's encoder does.
 
+Only the rungs someone watches are encoded (the session passes the rungs with a
+subscriber, :meth:`RenditionLadder.set_wanted`; the relay holds one upstream
+subscription per track while it has viewers), so a ladder nobody watches costs nothing.
+
 Rung IDRs stay on the same frames (the same pts on every rung), so a switch between
 rungs lands on a group boundary. A rung whose encoder fails is dropped (logged, the
 catalog republished without it); the other rungs and the player's track go on.
@@ -89,6 +93,7 @@ class LadderStats:
     aligned_keyframes: int = 0  # of which on a player-track IDR
     requested_keyframes: int = 0  # of which on a request
     convert_cpu_s: float = 0.0  # the one RGB -> YUV pass per frame, shared by the rungs
+    idle_frames: int = 0  # frames given while no rung was watched (nothing encoded)
     failed_rungs: list[str] = field(default_factory=list)
 
 
@@ -136,6 +141,7 @@ class RenditionLadder:
             encoder = VideoEncoder(config, encoded=(width, height))
             self.rungs.append(Rung(rung_track_name(width, height), width, height, bitrate, encoder))
         self._convert = VideoReformatter()
+        self._wanted: frozenset[str] | None = None
         self._last_idr_us: int | None = None
         self._requested = False
 
@@ -149,6 +155,20 @@ class RenditionLadder:
             rung.track: video_rendition(rung.encoder.encoded_config, self.fps, rung.bitrate)
             for rung in self.rungs
         }
+
+    @property
+    def idle(self) -> bool:
+        """Whether no rung is watched now (see :meth:`set_wanted`): nothing to encode."""
+        wanted = self._wanted
+        return wanted is not None and not any(r.track in wanted for r in self.rungs)
+
+    def set_wanted(self, tracks: frozenset[str] | None) -> None:
+        """Encode only the rungs in ``tracks`` (the ones someone subscribed to; None:
+        every rung). A rung nobody watches costs nothing, so a ladder on a host without
+        spectators is free; a rung that gets a subscriber again starts at the IDR its
+        subscription asks for. Safe to call from the event loop while another thread
+        encodes: it swaps one reference."""
+        self._wanted = tracks
 
     def request_keyframe(self) -> None:
         """A rung IDR soon (a new subscriber, a relay's nudge): the next frame, or the
@@ -173,9 +193,23 @@ class RenditionLadder:
         idr = self._idr_due(pts_us, align)
         out: list[RungFrame] = []
         failed: list[str] = []
+        wanted = self._wanted
+        rungs = list(self.rungs)
+        if wanted is not None:
+            # Down to the smallest rung someone watches: the ones above it only scale.
+            last = max((i for i, r in enumerate(rungs) if r.track in wanted), default=-1)
+            rungs = rungs[: last + 1]
+            if not rungs:
+                self.stats.idle_frames += 1
+                return out, failed
         source = self._display_yuv(frame)
-        for rung in list(self.rungs):
+        for rung in rungs:
             start = time.thread_time()
+            if wanted is not None and rung.track not in wanted:
+                source = rung.scaler.reformat(
+                    source, width=rung.width, height=rung.height, interpolation=Interpolation.AREA
+                )
+                continue
             try:
                 source = rung.scaler.reformat(
                     source, width=rung.width, height=rung.height, interpolation=Interpolation.AREA

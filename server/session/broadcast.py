@@ -103,10 +103,12 @@ class GameBroadcast:
         audio: bool = False,
         rung_tracks: tuple[str, ...] = (),
         on_rung_keyframe_wanted: Callable[[], None] | None = None,
+        on_rungs_watched: Callable[[frozenset[str]], None] | None = None,
     ) -> None:
         """``on_input_ended(source)``: a viewer's input broadcast ended (it left).
         ``rung_tracks``: the rendition ladder's tracks; ``on_rung_keyframe_wanted``: a
-        subscriber of one of them waits for the ladder's next IDR."""
+        subscriber of one of them waits for the ladder's next IDR;
+        ``on_rungs_watched(tracks)``: the rungs with a subscriber changed."""
         self.name = paths.normalize(name)
         self._static_tracks = TRACKS if audio else SILENT_TRACKS
         # The video track of the size encoded now: ``video`` until the first size change
@@ -122,6 +124,8 @@ class GameBroadcast:
         self.rung_tracks = rung_tracks
         self._on_rung_keyframe_wanted = on_rung_keyframe_wanted
         self._rung_seq: dict[str, int] = dict.fromkeys(rung_tracks, -1)
+        self._on_rungs_watched = on_rungs_watched
+        self._rungs_watched: frozenset[str] = frozenset()
         self._session: MoqSession | None = None
         self._subscribers: dict[int, _Subscriber] = {}  # request id -> state
         self._input_interest: int | None = None
@@ -156,12 +160,14 @@ class GameBroadcast:
         self._input_paths.clear()
         session.publish(self.name)
         self._input_interest = session.request_announces(self.input_prefix)
+        self._count_subscribers()
 
     def detach(self) -> None:
         self._session = None
         self._subscribers.clear()
         self._inputs.clear()
         self._input_paths.clear()
+        self._count_subscribers()
 
     # -- events from the session ---------------------------------------------------------
 
@@ -298,6 +304,11 @@ class GameBroadcast:
         for sub in self._subscribers.values():
             counts[sub.track] = counts.get(sub.track, 0) + 1  # an old video track too
         self.stats.subscribers = counts
+        watched = frozenset(t for t in self.rung_tracks if counts.get(t, 0) > 0)
+        if watched != self._rungs_watched:
+            self._rungs_watched = watched
+            if self._on_rungs_watched is not None:
+                self._on_rungs_watched(watched)
 
     # -- media ---------------------------------------------------------------------------
 
@@ -375,6 +386,7 @@ class GameBroadcast:
                 if sub.group_stream is not None:
                     session.finish_group(sub.group_stream)
                 session.end_subscription(request_id)
+        self._count_subscribers()
         self.set_catalog(catalog_json)
 
     def publish_audio(self, captured: CapturedAudio) -> None:

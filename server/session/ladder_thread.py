@@ -78,6 +78,8 @@ class LadderThread:
         """Queue the frame: ``yuv`` (the player's encoder's converted frame at the
         display size, which nothing writes again) when given, else a copy of ``rgb`` (a
         view of the ring, reused after this call)."""
+        if self.ladder.idle:
+            return  # no rung is watched: not even the copy
         copy: npt.NDArray[np.uint8] | VideoFrame = (
             yuv if yuv is not None else np.array(rgb, copy=True)
         )

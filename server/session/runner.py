@@ -207,7 +207,10 @@ class StreamingSession:
             on_rung_keyframe_wanted=(
                 self.ladder.request_keyframe if self.ladder is not None else None
             ),
+            on_rungs_watched=self.ladder.set_wanted if self.ladder is not None else None,
         )
+        if self.ladder is not None:
+            self.ladder.set_wanted(frozenset())  # nobody watches a rung yet
         self.broadcast.stream_state = self.stream_state
         # The page disables what the source cannot do (a captured application: methods
         # that need depth and motion, scale changes, frame generation).
