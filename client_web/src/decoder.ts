@@ -12,6 +12,9 @@ export interface VideoRendition {
 	init: string;
 	codedWidth?: number;
 	codedHeight?: number;
+	/** Frames per second and rate cap (bit/s), when the catalog gives them (the ladder's rungs do). */
+	framerate?: number;
+	bitrate?: number;
 }
 
 export interface DecoderEvents {
@@ -33,6 +36,11 @@ export interface Decoded {
 // A decoder that falls this far behind adds latency it never wins back: drop the rest
 // of the group and resume at the next keyframe instead.
 const MAX_DECODE_QUEUE = 8;
+// A catch-up floor this far ahead of the frames is another timeline (a new encoder
+// counting from 0), not a replay to skip through: it is dropped.
+const MAX_CATCH_UP_US = 5_000_000;
+// The queue allowed while catching up: a replayed GOP of up to 2 s at 60 fps.
+const CATCH_UP_QUEUE = 128;
 
 export class Decoder {
 	readonly #events: DecoderEvents;
@@ -50,6 +58,10 @@ export class Decoder {
 	skipped = 0;
 	/** Frames dropped because the decoder fell behind (counted as late). */
 	late = 0;
+	/** Frames decoded only as references for later ones (catch-up after a switch), never shown. */
+	hidden = 0;
+	// Frames up to this pts (us) are decoded but not output: see catchUp().
+	#catchUpUs?: number;
 
 	constructor(events: DecoderEvents) {
 		this.#events = events;
@@ -69,6 +81,13 @@ export class Decoder {
 		this.#decoder = new VideoDecoder({
 			output: (frame) => {
 				this.decoded++;
+				const floor = this.#catchUpUs;
+				if (floor !== undefined && frame.timestamp <= floor) {
+					this.hidden++;
+					frame.close();
+					return;
+				}
+				this.#catchUpUs = undefined;
 				this.#events.frame(frame);
 			},
 			error: (err) => {
@@ -90,6 +109,17 @@ export class Decoder {
 		this.#configKey = key;
 		this.#pending = rendition;
 		this.#wait("configured");
+	}
+
+	/**
+	 * After a switch, the new track's first group is the relay's replay of its cached
+	 * group, which starts up to a GOP before the picture already shown: its frames up to
+	 * `ptsUs` are decoded (the later ones reference them) but not shown, and they may
+	 * queue in the decoder beyond MAX_DECODE_QUEUE (a burst the decoder clears in a few
+	 * ms per frame, not a decoder falling behind).
+	 */
+	catchUp(ptsUs: number | undefined): void {
+		this.#catchUpUs = ptsUs !== undefined && Number.isFinite(ptsUs) ? ptsUs : undefined;
 	}
 
 	/** Frames were lost or a group skipped: frames after the gap reference missing ones. */
@@ -135,7 +165,11 @@ export class Decoder {
 		const out: Decoded = { timestamps: [], keyframe: false };
 		if (!decoder || !init || decoder.state !== "configured") return out;
 		for (const sample of Cmaf.decodeDataSegment(fragment, init)) {
-			if (!sample.keyframe && decoder.decodeQueueSize > MAX_DECODE_QUEUE) this.#wait("behind");
+			const floor = this.#catchUpUs;
+			if (floor !== undefined && sample.timestamp < floor - MAX_CATCH_UP_US) this.#catchUpUs = undefined;
+			// While catching up, the queue holds the replay: allow it and one group's worth more.
+			const limit = this.#catchUpUs === undefined ? MAX_DECODE_QUEUE : CATCH_UP_QUEUE;
+			if (!sample.keyframe && decoder.decodeQueueSize > limit) this.#wait("behind");
 			if (this.#waitForKey && !sample.keyframe) {
 				if (this.#waitReason === "behind") this.late++;
 				else this.skipped++;
@@ -167,6 +201,7 @@ export class Decoder {
 
 	close(): void {
 		this.#close();
+		this.#catchUpUs = undefined;
 		this.#configKey = "";
 		this.#pending = undefined;
 		this.#wait("closed");

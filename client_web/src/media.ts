@@ -1,6 +1,14 @@
-// Consumes the game broadcast with @moq/lite: `catalog.json`, `timing` and the video
-// track named by the catalog. One call = one subscription epoch; it returns when the
-// broadcast ends (tracks closed by the relay, connection lost, or stop()).
+// Consumes the game broadcast with @moq/lite: `catalog.json`, `timing` and one video
+// track of the catalog (the caller chooses which: the first, the player's track, unless
+// told otherwise). One call = one subscription epoch; it returns when the broadcast ends
+// (tracks closed by the relay, connection lost, or stop()).
+//
+// Switching renditions (selectVideo) is seamless: the new track is subscribed while the
+// old one keeps playing, and the page moves over when the new track's first frame (the
+// start of a group: a keyframe) is here; then the old track is closed. Why not at once:
+// the relay replays the new track's cached group at once, but that still takes a round
+// trip and the group's transfer, during which the old track's frames are the only
+// picture there is.
 import { merge } from "@moq/json";
 import * as Moq from "@moq/lite";
 import type { AudioRendition } from "./audio";
@@ -18,7 +26,20 @@ export const TIMING_TRACK = "timing";
 const PRIORITY = { catalog: 4, timing: 2, audio: 3, video: 1 };
 
 export interface MediaEvents {
+	/** The rendition playing (at the start, after each catalog, after a hard switch): configure the decoder. */
 	catalog(rendition: VideoRendition, catalog: unknown): void;
+	/**
+	 * The track to play, among the catalog's CMAF video renditions (in catalog order, at
+	 * least one); asked at each catalog. Default: the first (the player's track).
+	 */
+	chooseVideo?(renditions: VideoRendition[], catalog: unknown): string | undefined;
+	/**
+	 * The video moved over to `rendition` (a switch, or a refetch of the same track):
+	 * its first group's first frame, a keyframe, is the next video(). Reconfigure here.
+	 */
+	videoSwitched?(rendition: VideoRendition, from: string): void;
+	/** A switch to `track` was given up: its subscription ended before a frame came. */
+	videoSwitchFailed?(track: string, why: string): void;
 	/** One moof+mdat; `gap` is true when groups were skipped before this group. */
 	video(fragment: Uint8Array, gap: boolean): void;
 	timing(record: TimingRecord): void;
@@ -55,11 +76,19 @@ export interface VideoFaults {
 	corruptFrames: number;
 }
 
+/** A video subscription waiting for its first frame before it replaces the playing one. */
+interface PendingVideo {
+	track: Moq.Track;
+	name: string;
+}
+
 export class MediaSubscription {
 	readonly #broadcast: Moq.Broadcast;
 	readonly #events: MediaEvents;
 	#video?: Moq.Track;
 	#videoName?: string;
+	#pending?: PendingVideo;
+	#renditions: VideoRendition[] = [];
 	#audio?: Moq.Track;
 	#audioName?: string;
 	#stopped = false;
@@ -81,6 +110,8 @@ export class MediaSubscription {
 	stop(): void {
 		if (this.#stopped) return;
 		this.#stopped = true;
+		this.#pending?.track.close();
+		this.#pending = undefined;
 		this.#video?.close();
 		this.#audio?.close();
 		this.#broadcast.close();
@@ -108,14 +139,30 @@ export class MediaSubscription {
 	}
 
 	#onCatalog(catalog: unknown): void {
-		const rendition = pickRendition(catalog);
-		if (!rendition) throw new Error("catalog has no CMAF video rendition");
-		this.#events.catalog(rendition, catalog);
-		if (rendition.track !== this.#videoName) {
+		const renditions = pickRenditions(catalog);
+		if (renditions.length === 0) throw new Error("catalog has no CMAF video rendition");
+		this.#renditions = renditions;
+		const wanted = this.#events.chooseVideo?.(renditions, catalog);
+		const rendition = renditions.find((r) => r.track === wanted) ?? renditions[0];
+		const playing = renditions.find((r) => r.track === this.#videoName);
+		if (this.#pending && !renditions.some((r) => r.track === this.#pending?.name)) {
+			const name = this.#pending.name;
+			this.#cancelPending();
+			this.#events.videoSwitchFailed?.(name, "it left the catalog");
+		}
+		if (!playing) {
+			// The start, or the playing track left the catalog (a new encoded size renamed
+			// it): what is left of it was encoded for another decoder configuration, so
+			// move at once.
+			this.#cancelPending();
+			this.#events.catalog(rendition, catalog);
 			this.#video?.close();
 			this.#videoName = rendition.track;
 			this.#video = this.#broadcast.subscribe(rendition.track, PRIORITY.video);
 			void this.#runVideo(this.#video);
+		} else {
+			this.#events.catalog(playing, catalog); // a no-op unless its configuration changed
+			this.selectVideo(rendition.track);
 		}
 		const audio = pickAudio(catalog);
 		if (audio && this.#events.audio && audio.track !== this.#audioName) {
@@ -125,6 +172,70 @@ export class MediaSubscription {
 			this.#audio = this.#broadcast.subscribe(audio.track, PRIORITY.audio);
 			void this.#runAudio(this.#audio);
 		}
+	}
+
+	/** The track playing now, and the one a switch waits for. */
+	get videoTrack(): string | undefined {
+		return this.#videoName;
+	}
+
+	get pendingTrack(): string | undefined {
+		return this.#pending?.name;
+	}
+
+	/**
+	 * Play `track` (a rendition of the last catalog): subscribe it and move over at its
+	 * first frame; the playing track's name cancels a pending switch. False when the
+	 * track is not in the catalog.
+	 */
+	selectVideo(track: string): boolean {
+		if (this.#stopped) return false;
+		if (track === this.#videoName) {
+			this.#cancelPending();
+			return true;
+		}
+		if (track === this.#pending?.name) return true;
+		if (!this.#renditions.some((r) => r.track === track)) return false;
+		this.#startPending(track);
+		return true;
+	}
+
+	/**
+	 * Subscribe the playing track again and move over at its first frame: the relay
+	 * replays its latest group from the keyframe that starts it. A page that cannot ask
+	 * the encoder for a keyframe (no token) gets one this way. False while a switch is
+	 * pending (it brings a keyframe too) or nothing plays.
+	 */
+	refetchVideo(): boolean {
+		if (this.#stopped || this.#pending || !this.#videoName) return false;
+		this.#startPending(this.#videoName);
+		return true;
+	}
+
+	#startPending(name: string): void {
+		this.#cancelPending();
+		const track = this.#broadcast.subscribe(name, PRIORITY.video);
+		this.#pending = { track, name };
+		void this.#runVideo(track);
+	}
+
+	#cancelPending(): void {
+		this.#pending?.track.close();
+		this.#pending = undefined;
+	}
+
+	// The pending track's first frame is here: it becomes the playing one.
+	#promote(): void {
+		const pending = this.#pending;
+		if (!pending) return;
+		const old = this.#video;
+		const from = this.#videoName ?? "";
+		this.#pending = undefined;
+		this.#video = pending.track;
+		this.#videoName = pending.name;
+		const rendition = this.#renditions.find((r) => r.track === pending.name);
+		if (rendition) this.#events.videoSwitched?.(rendition, from);
+		old?.close();
 	}
 
 	// Every audio frame in order: readFrame() drains older groups before newer ones.
@@ -160,18 +271,28 @@ export class MediaSubscription {
 
 	async #runVideo(track: Moq.Track): Promise<void> {
 		let last: number | undefined;
+		let why = "track ended";
 		try {
 			for (;;) {
 				// The relay starts us at its latest group, which begins with a keyframe.
 				const group = await track.nextGroupOrdered();
 				if (!group) break;
 				const gap = last !== undefined && group.sequence !== last + 1;
-				if (gap && last !== undefined) this.#events.groupSkipped(group.sequence - last - 1);
+				if (gap && last !== undefined && track === this.#video) this.#events.groupSkipped(group.sequence - last - 1);
 				last = group.sequence;
 				await this.#readGroup(track, group, gap);
 			}
 		} catch (err) {
-			if (!this.#stopped) console.warn("upcast: video track ended:", errorText(err));
+			why = errorText(err);
+			if (!this.#stopped && track === this.#video) console.warn("upcast: video track ended:", why);
+		}
+		if (this.#stopped) return;
+		if (track === this.#pending?.track) {
+			// A switch whose track never delivered (refused, not found): stay where we are.
+			const name = this.#pending.name;
+			this.#pending = undefined;
+			this.#events.videoSwitchFailed?.(name, why);
+			return;
 		}
 		// Without video the epoch is useless: end it so the caller resubscribes.
 		if (track === this.#video) this.stop();
@@ -184,10 +305,15 @@ export class MediaSubscription {
 	async #readGroup(track: Moq.Track, group: Moq.Group, gap: boolean): Promise<void> {
 		let first = true;
 		for (;;) {
-			// A new catalog moved the video to another track (a new size): what is left
-			// of the old one was encoded for a decoder configured differently.
-			if (this.#stopped || track !== this.#video) return;
+			// A new catalog or a switch moved the video to another track: what is left of
+			// this one was encoded for a decoder configured differently, or is not wanted.
+			if (this.#stopped) return;
+			const pending = track === this.#pending?.track;
+			if (track !== this.#video && !pending) return;
 			const frame = group.state.frames.peek().shift();
+			if (frame && pending) {
+				this.#promote(); // the new track's first frame, a keyframe: move over now
+			}
 			if (frame) {
 				const fault = this.#fault();
 				if (fault) {
@@ -201,6 +327,12 @@ export class MediaSubscription {
 				continue;
 			}
 			const closed = group.state.closed.peek();
+			if (pending) {
+				// Nothing of the new track has played yet: no skip to count, just go on.
+				if (closed || track.state.closed.peek() || track.state.groups.peek().length > 0) return;
+				await Signal.race(group.state.frames, group.state.closed, track.state.groups, track.state.closed);
+				continue;
+			}
 			if (closed instanceof Error) {
 				// Reset: the relay skipped us past the rest of this group.
 				if (!this.#stopped && !track.state.closed.peek()) {
@@ -252,25 +384,36 @@ export class MediaSubscription {
 
 /** The first CMAF video rendition of a hang catalog; its key is the track name. */
 export function pickRendition(catalog: unknown): VideoRendition | undefined {
+	return pickRenditions(catalog)[0];
+}
+
+/** Every CMAF video rendition of a hang catalog, in catalog order (the player's track
+ * first, then the spectator rungs). */
+export function pickRenditions(catalog: unknown): VideoRendition[] {
 	const renditions = (catalog as { video?: { renditions?: Record<string, unknown> } })?.video?.renditions;
-	if (!renditions || typeof renditions !== "object") return undefined;
+	if (!renditions || typeof renditions !== "object") return [];
+	const out: VideoRendition[] = [];
 	for (const [track, value] of Object.entries(renditions)) {
 		const config = value as {
 			codec?: string;
 			container?: { kind?: string; init?: string };
 			codedWidth?: number;
 			codedHeight?: number;
+			framerate?: number;
+			bitrate?: number;
 		};
 		if (config?.container?.kind !== "cmaf" || !config.container.init || !config.codec) continue;
-		return {
+		out.push({
 			track,
 			codec: config.codec,
 			init: config.container.init,
 			codedWidth: config.codedWidth,
 			codedHeight: config.codedHeight,
-		};
+			framerate: typeof config.framerate === "number" ? config.framerate : undefined,
+			bitrate: typeof config.bitrate === "number" ? config.bitrate : undefined,
+		});
 	}
-	return undefined;
+	return out;
 }
 
 /** The first Opus rendition in the legacy container of a hang catalog, if any. */

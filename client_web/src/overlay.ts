@@ -39,6 +39,7 @@ export class Overlay {
 			`frames recv ${s.framesReceived}  dec ${s.framesDecoded}  shown ${s.framesPresented}  dropped ${s.dropped}`,
 			`lost ${s.framesLost}  skipped groups ${s.groupsSkipped}  late ${s.late}  freezes ${s.freezes} (${(s.freezeMs / 1000).toFixed(1)} s)`,
 			`keyframes asked ${s.recovery.keyframeRequests}${s.recovery.waiting ? ` (waiting: ${s.recovery.reason})` : ""}  recovered ${s.recovery.recoveries}${s.recovery.lastRecoveryMs === undefined ? "" : ` last ${s.recovery.lastRecoveryMs.toFixed(0)} ms`}`,
+			rendition(s),
 			quality(s.quality),
 			`frame id ${s.lastPresentedFrameId ?? "-"}  inputs ${s.inputsSent}  feedback ${s.feedbackSent}  recv ${(s.bytesReceived / 1e6).toFixed(1)} MB`,
 			s.audio.enabled
@@ -58,6 +59,15 @@ export class Overlay {
 		if (s.errors.length > 0) lines.push("", `last error: ${s.errors[s.errors.length - 1]}`);
 		this.#element.textContent = lines.join("\n");
 	}
+}
+
+/** "rendition video.640x360 (abr, 2 switches, ~3.1 Mbit/s): up: ...": what plays and why. */
+function rendition(s: Stats): string {
+	const a = s.abr;
+	const pending = a.pending ? ` -> ${a.pending}` : "";
+	const estimate = a.estimateBps === undefined ? "" : `, ~${(a.estimateBps / 1e6).toFixed(1)} Mbit/s`;
+	const why = a.mode === "abr" && a.reason ? `: ${a.reason}` : "";
+	return `rendition ${s.rendition ?? "-"}${pending} (${a.mode}, ${s.renditionSwitches} switches${estimate})${why}`;
 }
 
 /** "quality auto: temporal at 2x, 30 fps (+0.31 dB expected ...)": the setting and why. */

@@ -2,6 +2,7 @@
 // decoder, the renderer, the overlay and the input publisher; plus window.upcast, the
 // hooks the end-to-end tests read.
 import * as Moq from "@moq/lite";
+import { Abr, type AbrDecision, formatBps, renditionParams, spectatorLadder } from "./abr";
 import { AudioPlayer } from "./audio";
 import { mountAudioControls } from "./audio_controls";
 import { AudioTimingJoin, type AudioTimingRecord } from "./audio_timing";
@@ -9,7 +10,7 @@ import { wallMs, wallUs } from "./clock";
 import { readConfig } from "./config";
 import { Announcement, type Status, keepConnected, sleep } from "./connection";
 import { mountControls } from "./controls";
-import { Decoder } from "./decoder";
+import { Decoder, type VideoRendition } from "./decoder";
 import { FEEDBACK_INTERVAL_MS, ReceiveStats } from "./feedback";
 import { readFragmentHeader } from "./fragment";
 import { InputCapture, InputPublisher } from "./input";
@@ -81,7 +82,11 @@ function main(): void {
 	// What arrives on the video track, counted from the track itself (feedback.ts), and
 	// the keyframe requests that get the picture going again after a loss (recovery.ts).
 	const receive = new ReceiveStats();
-	const recovery = new KeyframeRecovery();
+	// Publishing inputs needs a token (put on `<broadcast>/input`); without one the relay
+	// would close the whole session on the announce, so a tokenless page only watches.
+	const viewOnly = config.token === null;
+	// A page without a token cannot ask for keyframes: it refetches instead (recovery.ts).
+	const recovery = new KeyframeRecovery({ canRequest: !viewOnly });
 	const faults: VideoFaults = { dropGroups: 0, blackoutUntilMs: 0, corruptFrames: 0 };
 
 	const renderer = new Renderer(canvas);
@@ -117,9 +122,13 @@ function main(): void {
 	};
 
 	const hold = new VideoHold((frame) => renderer.push(frame));
+	// The newest pts handed on to be shown: after a switch, older frames of the new
+	// track are decoded for reference only (Decoder.catchUp).
+	let newestShownPts: number | undefined;
 	const decoder = new Decoder({
 		frame: (frame) => {
 			timing.stamp(frame.timestamp, "decode", wallUs());
+			if (newestShownPts === undefined || frame.timestamp > newestShownPts) newestShownPts = frame.timestamp;
 			hold.add(frame, audio && audioEnabled ? audio.videoWaitMs(frame.timestamp, SYNC_MS) : undefined);
 		},
 		error,
@@ -127,9 +136,6 @@ function main(): void {
 	});
 
 	const publisher = new InputPublisher(config.broadcast);
-	// Publishing inputs needs a token (put on `<broadcast>/input`); without one the relay
-	// would close the whole session on the announce, so a tokenless page only watches.
-	const viewOnly = config.token === null;
 	const controlsRoot = document.getElementById("controls") as HTMLElement;
 	const controls = mountControls(controlsRoot, publisher, viewOnly);
 	if (viewOnly) {
@@ -144,14 +150,134 @@ function main(): void {
 		capture.onPress = (seq, sentMs) => inputToPhoton.press(seq, sentMs);
 	}
 
+	// Which rendition plays (abr.ts): a page with a token plays the catalog's first, the
+	// player's track; a spectator chooses among the ladder's rungs with the ABR.
+	// `?rendition=<track>` forces one, `?abr=off` keeps the first.
+	const params = renditionParams(window.location.search);
+	const autoMode = viewOnly && !params.abrOff ? "abr" : viewOnly ? "first" : "player";
+	const abr = new Abr();
+	const video = {
+		mode: (params.forced ? "forced" : autoMode) as "abr" | "forced" | "first" | "player",
+		forced: params.forced,
+		/** The track playing, since when (performance.now()), and seconds per track. */
+		track: undefined as string | undefined,
+		since: 0,
+		seconds: {} as Record<string, number>,
+		switches: 0,
+		ladder: [] as string[],
+		/** When the pending switch was asked for, and why. */
+		askedAt: undefined as number | undefined,
+		askedWhy: undefined as string | undefined,
+		lastSwitch: undefined as { from: string; to: string; reason: string; tookMs?: number } | undefined,
+		forcedMissing: undefined as string | undefined,
+	};
+	// The subscription of this epoch (switches and refetches go to it).
+	let current: MediaSubscription | undefined;
+	// mfhd numbers continue across a switch (each rung's encoder counts its own).
+	let sequenceOffset = 0;
+	let lastSequence: number | undefined;
+	let resequence = false;
+
+	const playing = (track: string | undefined, now: number): void => {
+		if (video.track !== undefined) video.seconds[video.track] = (video.seconds[video.track] ?? 0) + (now - video.since) / 1000;
+		video.track = track;
+		video.since = now;
+	};
+
+	const chooseVideo = (renditions: VideoRendition[]): string | undefined => {
+		video.ladder = renditions.map((r) => r.track);
+		if (video.mode === "forced" && video.forced !== undefined) {
+			if (renditions.some((r) => r.track === video.forced)) return video.forced;
+			if (video.forcedMissing !== video.forced) {
+				video.forcedMissing = video.forced;
+				console.warn(`upcast: rendition ${video.forced} is not in the catalog (${video.ladder.join(", ")}): playing ${renditions[0].track}`);
+			}
+			return renditions[0].track;
+		}
+		if (video.mode !== "abr") return renditions[0].track;
+		const rungs = spectatorLadder(renditions);
+		video.ladder = rungs.map((r) => r.track);
+		const before = abr.playing;
+		const track = abr.setLadder(rungs, performance.now());
+		if (track !== undefined && abr.playing !== before) {
+			console.info(`upcast: rendition ${track} (${abr.reason}; ladder ${rungs.map((r) => `${r.track} ${formatBps(r.bitrate)}`).join(", ")})`);
+		}
+		return track;
+	};
+
+	const applyAbr = (decision: AbrDecision | undefined): void => {
+		if (!decision || video.mode !== "abr" || !current) return;
+		const from = current.videoTrack;
+		if (decision.direction === "back") {
+			console.info(`upcast: rendition stays ${decision.track} (${decision.reason})`);
+		} else {
+			console.info(`upcast: rendition ${from} -> ${decision.track} (${decision.reason})`);
+			video.askedAt = performance.now();
+			video.askedWhy = decision.reason;
+		}
+		if (!current.selectVideo(decision.track)) abr.switchFailed(performance.now(), decision.track, "not in the catalog");
+	};
+
+	/** Play `track` now (null: let the page choose: its ABR for a spectator); the test hook. */
+	const selectRendition = (track: string | null): boolean => {
+		if (track === null) {
+			video.mode = autoMode;
+			video.forced = undefined;
+			const back = video.mode === "abr" ? abr.target : video.ladder[0];
+			return back === undefined || (current?.selectVideo(back) ?? false);
+		}
+		video.mode = "forced";
+		video.forced = track;
+		video.askedAt = performance.now();
+		video.askedWhy = "asked by the page";
+		console.info(`upcast: rendition ${current?.videoTrack} -> ${track} (asked by the page)`);
+		return current?.selectVideo(track) ?? false;
+	};
+
+	// The video moved over to another track (or the same one, refetched): its first
+	// group, a keyframe, comes next.
+	const videoSwitched = (rendition: VideoRendition, from: string): void => {
+		const now = performance.now();
+		state.codec = rendition.codec;
+		try {
+			decoder.configure(rendition);
+		} catch (err) {
+			error(`configure ${rendition.codec}: ${errorText(err)}`);
+		}
+		decoder.gap(rendition.track === from ? "refetch" : "switch");
+		// The replayed group starts up to a GOP before what is on screen: decode it, show
+		// only what is newer.
+		decoder.catchUp(newestShownPts);
+		resequence = true;
+		abr.switched(now, rendition.track);
+		playing(rendition.track, now);
+		const took = video.askedAt === undefined ? undefined : now - video.askedAt;
+		if (rendition.track === from) {
+			console.info(`upcast: rendition ${rendition.track} fetched again from its latest group`);
+		} else {
+			video.switches++;
+			const reason = video.askedWhy ?? "catalog";
+			video.lastSwitch = { from, to: rendition.track, reason, tookMs: took };
+			console.info(`upcast: rendition now ${rendition.track} (switch ${video.switches}, from ${from}${took === undefined ? "" : `, ${took.toFixed(0)} ms after asking`}: ${reason})`);
+		}
+		video.askedAt = undefined;
+		video.askedWhy = undefined;
+	};
+
 	// Keyframe requests go out on the input track, like the page's button; a page
-	// without a token cannot send them and waits for the next keyframe the encoder makes.
+	// without a token cannot send them: it waits for the ladder's next group, and if
+	// none comes it fetches the latest group again (recovery.ts).
 	let recoveryTimer: ReturnType<typeof setTimeout> | undefined;
 	const pumpRecovery = (): void => {
 		const now = performance.now();
 		if (recovery.poll(now)) {
-			if (!viewOnly) publisher.send({ type: "keyframe" });
-			console.info(`upcast: keyframe requested (${recovery.reason}, waiting ${recovery.waitedMs(now).toFixed(0)} ms)`);
+			const waited = recovery.waitedMs(now).toFixed(0);
+			if (recovery.action === "request") {
+				publisher.send({ type: "keyframe" });
+				console.info(`upcast: keyframe requested (${recovery.reason}, waiting ${waited} ms)`);
+			} else if (current?.refetchVideo()) {
+				console.info(`upcast: no keyframe for ${waited} ms (${recovery.reason}): fetching the latest group of ${current.videoTrack} again`);
+			}
 		}
 		clearTimeout(recoveryTimer);
 		const wait = recovery.wakeIn(now);
@@ -165,12 +291,24 @@ function main(): void {
 	// Frames the page threw away for being behind: the renderer's newest-wins drops and
 	// the decoder's queue overflows.
 	const droppedLate = (): number => renderer.dropped + decoder.late;
+	// The ABR's timers: a stall, a switch that never came, low fps, an up-switch due.
+	setInterval(() => {
+		if (video.mode === "abr" && state.subscribed) applyAbr(abr.poll(performance.now()));
+	}, 250);
+
 	setInterval(() => {
 		// Only while playing, and only when the session listens: frames wait otherwise.
 		if (viewOnly || !state.subscribed || publisher.subscribers === 0) return;
 		publisher.send(receive.report(true, droppedLate()));
 		state.feedbackSent++;
 	}, FEEDBACK_INTERVAL_MS);
+
+	const renditionSeconds = (): Record<string, number> => {
+		const out = { ...video.seconds };
+		if (video.track !== undefined) out[video.track] = (out[video.track] ?? 0) + (performance.now() - video.since) / 1000;
+		for (const key of Object.keys(out)) out[key] = Math.round(out[key] * 100) / 100;
+		return out;
+	};
 
 	const stats = (): Stats => ({
 		...state,
@@ -192,6 +330,21 @@ function main(): void {
 			keyframeRequests: recovery.requests,
 			recoveries: recovery.recoveries,
 			lastRecoveryMs: recovery.lastRecoveryMs,
+			refetches: recovery.refetches,
+		},
+		rendition: video.track,
+		renditionSwitches: video.switches,
+		renditionSeconds: renditionSeconds(),
+		abr: {
+			mode: video.mode,
+			pending: current?.pendingTrack,
+			reason: video.mode === "abr" ? abr.reason : video.mode === "forced" ? `forced: ${video.forced}` : video.mode,
+			estimateBps: abr.estimate(performance.now()),
+			holdMs: abr.holdMs,
+			failedUps: abr.failedUps,
+			ladder: [...video.ladder],
+			lastSwitch: video.lastSwitch,
+			hiddenFrames: decoder.hidden,
 		},
 		skippedUndecodable: decoder.skipped,
 		width: renderer.width,
@@ -251,6 +404,13 @@ function main(): void {
 		}),
 		/** The player's audio output (a GainNode) and its context: tests put an analyser on it. */
 		audioOutput: () => audio?.output ?? null,
+		/**
+		 * Play this rendition (a track of the catalog) from now on, as `?rendition=` does;
+		 * null: let the page choose (its ABR for a spectator, the first rendition for a
+		 * player or with ?abr=off). False when the track is not in the catalog or nothing
+		 * is subscribed.
+		 */
+		rendition: (track: string | null) => selectRendition(track),
 		/** Send an input message by hand (tests); returns it with seq and sent_ms. */
 		send: (message: Parameters<InputPublisher["send"]>[0]) => publisher.send(message),
 		/**
@@ -275,6 +435,12 @@ function main(): void {
 		setStatus("failed", "this page needs WebTransport and WebCodecs (a secure context: https:// or localhost)");
 		return;
 	}
+
+	// Groups skipped or reset: counted, and for a spectator's ABR a reason to go down.
+	const skipped = (count: number, why: string): void => {
+		receive.groupsSkipped(count);
+		if (video.mode === "abr") applyAbr(abr.skipped(performance.now(), why));
+	};
 
 	const name = Moq.Path.from(config.broadcast);
 	// A video group was left for a newer one; counted as skipped if frames are missing.
@@ -312,15 +478,34 @@ function main(): void {
 			// The relay starts a subscription at its newest group, at a keyframe.
 			receive.restart();
 			recovery.reset();
+			abr.restart();
 			groupLeft = false;
+			newestShownPts = undefined;
+			decoder.catchUp(undefined);
+			sequenceOffset = 0;
+			lastSequence = undefined;
+			resequence = false;
 			const subscription = new MediaSubscription(connection, name, {
 				catalog: (rendition) => {
 					state.codec = rendition.codec;
+					if (rendition.track !== video.track) {
+						// The start, or a new catalog renamed the track (a new encoded size).
+						if (video.track !== undefined) resequence = true;
+						playing(rendition.track, performance.now());
+					}
 					try {
 						decoder.configure(rendition);
 					} catch (err) {
 						error(`configure ${rendition.codec}: ${errorText(err)}`);
 					}
+				},
+				chooseVideo: (renditions) => chooseVideo(renditions),
+				videoSwitched: (rendition, from) => videoSwitched(rendition, from),
+				videoSwitchFailed: (track, why) => {
+					console.warn(`upcast: rendition ${track} not played: ${why}`);
+					video.askedAt = undefined;
+					video.askedWhy = undefined;
+					abr.switchFailed(performance.now(), track, why);
 				},
 				video: (fragment, gap) => {
 					state.framesReceived++;
@@ -330,17 +515,31 @@ function main(): void {
 					const arrival = performance.now();
 					const header = readFragmentHeader(fragment);
 					const ptsUs = header ? decoder.ptsUs(header.decodeTime) : undefined;
-					const lost = receive.fragment(header?.sequence, ptsUs, fragment.byteLength, arrival);
+					let sequence = header?.sequence;
+					if (sequence !== undefined) {
+						// After a switch the new track's numbers continue the old one's.
+						if (resequence) sequenceOffset = lastSequence === undefined ? 0 : lastSequence + 1 - sequence;
+						resequence = false;
+						sequence += sequenceOffset;
+						lastSequence = sequence;
+					}
+					const lost = receive.fragment(sequence, ptsUs, fragment.byteLength, arrival);
 					// The group left for this one was cut short only if frames are missing.
-					if (left && lost > 0) receive.groupsSkipped(1);
+					if (left && lost > 0) skipped(1, "a group left unfinished");
 					if (gap || lost > 0) decoder.gap(gap ? "group skipped" : `${lost} frame(s) lost`);
+					let keyframe = false;
 					try {
 						const decoded = decoder.decode(fragment);
 						for (const pts of decoded.timestamps) timing.stamp(pts, "receive", now);
+						keyframe = decoded.keyframe;
 						if (decoded.keyframe) recovery.keyframe(performance.now());
 					} catch (err) {
 						error(`decode: ${errorText(err)}`);
 						decoder.gap("decode error");
+					}
+					if (video.mode === "abr") {
+						applyAbr(abr.frame(arrival, fragment.byteLength, ptsUs ?? Number.NaN, keyframe));
+						applyAbr(abr.late(arrival, decoder.late));
 					}
 					// A frame the decoder cannot use: ask for the keyframe it waits for.
 					if (decoder.waitingForKey) needKeyframe(decoder.waitReason);
@@ -366,7 +565,7 @@ function main(): void {
 						error(`audio: ${errorText(err)}`);
 					}
 				},
-				groupSkipped: (count) => receive.groupsSkipped(count),
+				groupSkipped: (count) => skipped(count, `${count} group(s) skipped`),
 				groupEnded: (why, kind, newerWaiting) => {
 					if (kind === "left") {
 						// Counted as skipped if the next group's first fragment shows a loss.
@@ -378,6 +577,7 @@ function main(): void {
 					if (!newerWaiting) needKeyframe(why);
 				},
 			}, faults);
+			current = subscription;
 			state.subscribed = true;
 			setStatus("subscribed", config.broadcast);
 			console.info("upcast: subscribed to", config.broadcast);
@@ -398,6 +598,8 @@ function main(): void {
 			]);
 			ended = true; // lets the announce watcher above finish at the next change
 			subscription.stop();
+			if (current === subscription) current = undefined;
+			playing(undefined, performance.now());
 			state.subscribed = false;
 			decoder.gap("resubscribe");
 			recovery.reset();

@@ -143,7 +143,28 @@ export interface Stats {
 	/** Gaps in the timing track's publish counter (the timing track is rarely skipped: not a loss measure). */
 	timingGaps: number;
 	/** Keyframe recovery: waiting now (and why), requests sent, waits ended by a keyframe, the last one's ms. */
-	recovery: { waiting: boolean; reason?: string; keyframeRequests: number; recoveries: number; lastRecoveryMs?: number };
+	recovery: { waiting: boolean; reason?: string; keyframeRequests: number; recoveries: number; lastRecoveryMs?: number; refetches: number };
+	/** The video track playing (a rendition of the catalog), undefined between subscriptions. */
+	rendition?: string;
+	/** Moves from one rendition to another since the page loaded (not a track renamed by a new catalog). */
+	renditionSwitches: number;
+	/** Seconds each rendition has played since the page loaded. */
+	renditionSeconds: Record<string, number>;
+	/** How the rendition is chosen: mode "player" (a token: the catalog's first), "abr"
+	 * (a spectator), "forced" (?rendition= or the page hook), "first" (?abr=off); the
+	 * last reason, the switch waiting for its first frame, the ABR's throughput estimate
+	 * and up-switch hold, the tracks chosen among, frames decoded only as references. */
+	abr: {
+		mode: string;
+		pending?: string;
+		reason?: string;
+		estimateBps?: number;
+		holdMs: number;
+		failedUps: number;
+		ladder: string[];
+		lastSwitch?: { from: string; to: string; reason: string; tookMs?: number };
+		hiddenFrames: number;
+	};
 	/** Feedback messages sent on the input track. */
 	feedbackSent: number;
 	/** Connections made to the relay (more than 1: the page reconnected). */
