@@ -2,7 +2,7 @@
 // decoder, the renderer, the overlay and the input publisher; plus window.upcast, the
 // hooks the end-to-end tests read.
 import * as Moq from "@moq/lite";
-import { Abr, type AbrDecision, formatBps, renditionParams, spectatorLadder } from "./abr";
+import { Abr, renditionParams } from "./abr";
 import { AudioPlayer } from "./audio";
 import { mountAudioControls } from "./audio_controls";
 import { AudioTimingJoin, type AudioTimingRecord } from "./audio_timing";
@@ -17,6 +17,7 @@ import { InputCapture, InputPublisher } from "./input";
 import { errorText, MediaSubscription, type VideoFaults } from "./media";
 import { Overlay } from "./overlay";
 import { Renderer } from "./renderer";
+import { RenditionChoice } from "./rendition_choice";
 import { SYNC_MS, VideoHold } from "./video_hold";
 import { KeyframeRecovery } from "./recovery";
 import { FpsMeter, StageLatency, type Stats } from "./stats";
@@ -150,89 +151,17 @@ function main(): void {
 		capture.onPress = (seq, sentMs) => inputToPhoton.press(seq, sentMs);
 	}
 
-	// Which rendition plays (abr.ts): a page with a token plays the catalog's first, the
-	// player's track; a spectator chooses among the ladder's rungs with the ABR.
-	// `?rendition=<track>` forces one, `?abr=off` keeps the first.
-	const params = renditionParams(window.location.search);
-	const autoMode = viewOnly && !params.abrOff ? "abr" : viewOnly ? "first" : "player";
+	// Which rendition plays (rendition_choice.ts): a page with a token plays the catalog's
+	// first, the player's track; a spectator chooses among the ladder's rungs with the
+	// ABR (abr.ts). `?rendition=<track>` forces one, `?abr=off` keeps the first.
 	const abr = new Abr();
-	const video = {
-		mode: (params.forced ? "forced" : autoMode) as "abr" | "forced" | "first" | "player",
-		forced: params.forced,
-		/** The track playing, since when (performance.now()), and seconds per track. */
-		track: undefined as string | undefined,
-		since: 0,
-		seconds: {} as Record<string, number>,
-		switches: 0,
-		ladder: [] as string[],
-		/** When the pending switch was asked for, and why. */
-		askedAt: undefined as number | undefined,
-		askedWhy: undefined as string | undefined,
-		lastSwitch: undefined as { from: string; to: string; reason: string; tookMs?: number } | undefined,
-		forcedMissing: undefined as string | undefined,
-	};
+	const choice = new RenditionChoice(renditionParams(window.location.search), viewOnly, abr);
 	// The subscription of this epoch (switches and refetches go to it).
 	let current: MediaSubscription | undefined;
 	// mfhd numbers continue across a switch (each rung's encoder counts its own).
 	let sequenceOffset = 0;
 	let lastSequence: number | undefined;
 	let resequence = false;
-
-	const playing = (track: string | undefined, now: number): void => {
-		if (video.track !== undefined) video.seconds[video.track] = (video.seconds[video.track] ?? 0) + (now - video.since) / 1000;
-		video.track = track;
-		video.since = now;
-	};
-
-	const chooseVideo = (renditions: VideoRendition[]): string | undefined => {
-		video.ladder = renditions.map((r) => r.track);
-		if (video.mode === "forced" && video.forced !== undefined) {
-			if (renditions.some((r) => r.track === video.forced)) return video.forced;
-			if (video.forcedMissing !== video.forced) {
-				video.forcedMissing = video.forced;
-				console.warn(`upcast: rendition ${video.forced} is not in the catalog (${video.ladder.join(", ")}): playing ${renditions[0].track}`);
-			}
-			return renditions[0].track;
-		}
-		if (video.mode !== "abr") return renditions[0].track;
-		const rungs = spectatorLadder(renditions);
-		video.ladder = rungs.map((r) => r.track);
-		const before = abr.playing;
-		const track = abr.setLadder(rungs, performance.now());
-		if (track !== undefined && abr.playing !== before) {
-			console.info(`upcast: rendition ${track} (${abr.reason}; ladder ${rungs.map((r) => `${r.track} ${formatBps(r.bitrate)}`).join(", ")})`);
-		}
-		return track;
-	};
-
-	const applyAbr = (decision: AbrDecision | undefined): void => {
-		if (!decision || video.mode !== "abr" || !current) return;
-		const from = current.videoTrack;
-		if (decision.direction === "back") {
-			console.info(`upcast: rendition stays ${decision.track} (${decision.reason})`);
-		} else {
-			console.info(`upcast: rendition ${from} -> ${decision.track} (${decision.reason})`);
-			video.askedAt = performance.now();
-			video.askedWhy = decision.reason;
-		}
-		if (!current.selectVideo(decision.track)) abr.switchFailed(performance.now(), decision.track, "not in the catalog");
-	};
-
-	/** Play `track` now (null: let the page choose: its ABR for a spectator); the test hook. */
-	const selectRendition = (track: string | null): boolean => {
-		if (track === null) {
-			video.mode = autoMode;
-			video.forced = undefined;
-			const back = video.mode === "abr" ? abr.target : video.ladder[0];
-			return back === undefined || (current?.selectVideo(back) ?? false);
-		}
-		video.mode = "forced";
-		video.forced = track;
-		video.askedAt = performance.now();
-		video.askedWhy = "asked by the page";
-		console.info(`upcast: rendition ${current?.videoTrack} -> ${track} (asked by the page)`);
-		return current?.selectVideo(track) ?? false;
-	};
 
 	// The video moved over to another track (or the same one, refetched): its first
 	// group, a keyframe, comes next.
@@ -244,24 +173,11 @@ function main(): void {
 		} catch (err) {
 			error(`configure ${rendition.codec}: ${errorText(err)}`);
 		}
-		decoder.gap(rendition.track === from ? "refetch" : "switch");
+		decoder.gap(choice.switched(rendition, from, now));
 		// The replayed group starts up to a GOP before what is on screen: decode it, show
 		// only what is newer.
 		decoder.catchUp(newestShownPts);
 		resequence = true;
-		abr.switched(now, rendition.track);
-		playing(rendition.track, now);
-		const took = video.askedAt === undefined ? undefined : now - video.askedAt;
-		if (rendition.track === from) {
-			console.info(`upcast: rendition ${rendition.track} fetched again from its latest group`);
-		} else {
-			video.switches++;
-			const reason = video.askedWhy ?? "catalog";
-			video.lastSwitch = { from, to: rendition.track, reason, tookMs: took };
-			console.info(`upcast: rendition now ${rendition.track} (switch ${video.switches}, from ${from}${took === undefined ? "" : `, ${took.toFixed(0)} ms after asking`}: ${reason})`);
-		}
-		video.askedAt = undefined;
-		video.askedWhy = undefined;
 	};
 
 	// Keyframe requests go out on the input track, like the page's button; a page
@@ -293,7 +209,7 @@ function main(): void {
 	const droppedLate = (): number => renderer.dropped + decoder.late;
 	// The ABR's timers: a stall, a switch that never came, low fps, an up-switch due.
 	setInterval(() => {
-		if (video.mode === "abr" && state.subscribed) applyAbr(abr.poll(performance.now()));
+		if (choice.adaptive && state.subscribed) choice.apply(abr.poll(performance.now()), current);
 	}, 250);
 
 	setInterval(() => {
@@ -302,13 +218,6 @@ function main(): void {
 		publisher.send(receive.report(true, droppedLate()));
 		state.feedbackSent++;
 	}, FEEDBACK_INTERVAL_MS);
-
-	const renditionSeconds = (): Record<string, number> => {
-		const out = { ...video.seconds };
-		if (video.track !== undefined) out[video.track] = (out[video.track] ?? 0) + (performance.now() - video.since) / 1000;
-		for (const key of Object.keys(out)) out[key] = Math.round(out[key] * 100) / 100;
-		return out;
-	};
 
 	const stats = (): Stats => ({
 		...state,
@@ -332,20 +241,7 @@ function main(): void {
 			lastRecoveryMs: recovery.lastRecoveryMs,
 			refetches: recovery.refetches,
 		},
-		rendition: video.track,
-		renditionSwitches: video.switches,
-		renditionSeconds: renditionSeconds(),
-		abr: {
-			mode: video.mode,
-			pending: current?.pendingTrack,
-			reason: video.mode === "abr" ? abr.reason : video.mode === "forced" ? `forced: ${video.forced}` : video.mode,
-			estimateBps: abr.estimate(performance.now()),
-			holdMs: abr.holdMs,
-			failedUps: abr.failedUps,
-			ladder: [...video.ladder],
-			lastSwitch: video.lastSwitch,
-			hiddenFrames: decoder.hidden,
-		},
+		...choice.stats(current?.pendingTrack, decoder.hidden),
 		skippedUndecodable: decoder.skipped,
 		width: renderer.width,
 		height: renderer.height,
@@ -410,7 +306,7 @@ function main(): void {
 		 * player or with ?abr=off). False when the track is not in the catalog or nothing
 		 * is subscribed.
 		 */
-		rendition: (track: string | null) => selectRendition(track),
+		rendition: (track: string | null) => choice.select(track, current),
 		/** Send an input message by hand (tests); returns it with seq and sent_ms. */
 		send: (message: Parameters<InputPublisher["send"]>[0]) => publisher.send(message),
 		/**
@@ -439,7 +335,7 @@ function main(): void {
 	// Groups skipped or reset: counted, and for a spectator's ABR a reason to go down.
 	const skipped = (count: number, why: string): void => {
 		receive.groupsSkipped(count);
-		if (video.mode === "abr") applyAbr(abr.skipped(performance.now(), why));
+		if (choice.adaptive) choice.apply(abr.skipped(performance.now(), why), current);
 	};
 
 	const name = Moq.Path.from(config.broadcast);
@@ -488,25 +384,17 @@ function main(): void {
 			const subscription = new MediaSubscription(connection, name, {
 				catalog: (rendition) => {
 					state.codec = rendition.codec;
-					if (rendition.track !== video.track) {
-						// The start, or a new catalog renamed the track (a new encoded size).
-						if (video.track !== undefined) resequence = true;
-						playing(rendition.track, performance.now());
-					}
+					// The start, or a new catalog renamed the track (a new encoded size).
+					if (choice.catalog(rendition.track)) resequence = true;
 					try {
 						decoder.configure(rendition);
 					} catch (err) {
 						error(`configure ${rendition.codec}: ${errorText(err)}`);
 					}
 				},
-				chooseVideo: (renditions) => chooseVideo(renditions),
+				chooseVideo: (renditions) => choice.choose(renditions),
 				videoSwitched: (rendition, from) => videoSwitched(rendition, from),
-				videoSwitchFailed: (track, why) => {
-					console.warn(`upcast: rendition ${track} not played: ${why}`);
-					video.askedAt = undefined;
-					video.askedWhy = undefined;
-					abr.switchFailed(performance.now(), track, why);
-				},
+				videoSwitchFailed: (track, why) => choice.switchFailed(track, why),
 				video: (fragment, gap) => {
 					state.framesReceived++;
 					const left = groupLeft;
@@ -537,9 +425,9 @@ function main(): void {
 						error(`decode: ${errorText(err)}`);
 						decoder.gap("decode error");
 					}
-					if (video.mode === "abr") {
-						applyAbr(abr.frame(arrival, fragment.byteLength, ptsUs ?? Number.NaN, keyframe));
-						applyAbr(abr.late(arrival, decoder.late));
+					if (choice.adaptive) {
+						choice.apply(abr.frame(arrival, fragment.byteLength, ptsUs ?? Number.NaN, keyframe), current);
+						choice.apply(abr.late(arrival, decoder.late), current);
 					}
 					// A frame the decoder cannot use: ask for the keyframe it waits for.
 					if (decoder.waitingForKey) needKeyframe(decoder.waitReason);
@@ -599,7 +487,7 @@ function main(): void {
 			ended = true; // lets the announce watcher above finish at the next change
 			subscription.stop();
 			if (current === subscription) current = undefined;
-			playing(undefined, performance.now());
+			choice.stopped();
 			state.subscribed = false;
 			decoder.gap("resubscribe");
 			recovery.reset();
