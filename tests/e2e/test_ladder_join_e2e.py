@@ -1,10 +1,11 @@
 """Spectators join the rendition ladder at once: the real stack (as ``upcast up`` runs
 it, with the default ladder) and 20 tokenless load-test viewers connecting in the same
 second to the smallest rung, which nobody watched before (so the ladder had encoded
-nothing: the first subscription starts it, with an IDR). Each one's first frame is a rung group's keyframe, replayed
-by the relay from its cache or sent at the next rung IDR (one a second): no viewer waits
-for the player's track's next IDR (10 s apart under intra refresh), which is what a
-tokenless page waited for before the ladder (issue 44: 4-8 s without a picture)."""
+nothing: the first subscription starts it, with an IDR). Each one's first frame is a
+rung group's keyframe, replayed by the relay from its cache or sent at the next rung
+IDR (one a second): no viewer waits for the player's track's next IDR (10 s apart under
+intra refresh), which is what a tokenless page waited for before the ladder (issue 44:
+4-8 s without a picture)."""
 
 from __future__ import annotations
 
