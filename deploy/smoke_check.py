@@ -252,7 +252,10 @@ def run(args: argparse.Namespace) -> None:
         try:
             page = browser.new_page(viewport={"width": 1400, "height": 900})
             page.on("console", console_errors)
-            page.goto(f"{relay_url}?broadcast={args.broadcast}&overlay=0")
+            # The pictures are compared with the frames the session tapped from the
+            # player's track, so the page plays that track (abr=off: the catalog's
+            # first), not a spectator's rung (tests/e2e/test_spectator_ladder_e2e.py).
+            page.goto(f"{relay_url}?broadcast={args.broadcast}&overlay=0&abr=off")
             wait_presented(page, 1, args.timeout)
             say(f"first frame in the browser {time.time() - args.up_at:.1f} s after `up`")
             stats = page.evaluate("() => window.upcast.stats()")
