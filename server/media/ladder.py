@@ -59,10 +59,6 @@ from server.stream_config import DEFAULT_DIVISORS, DEFAULT_GOP_S, check_divisors
 
 log = logging.getLogger(__name__)
 
-# A rung's rate cap against default_bitrate's for its size and frame rate (6 Mbit/s at
-# 720p60 scaled by pixels per second). Spectator rungs are for links that cannot carry
-# the player's rate, so they keep the default's bits per pixel, not more.
-RUNG_BITRATE_FACTOR = 1.0
 # No periodic IDR of the rung's own: the ladder decides every rung's IDRs (module doc).
 _NO_PERIODIC_IDR_S = 3600.0
 
@@ -82,7 +78,6 @@ class Rung:
     encoder: VideoEncoder
     scaler: VideoReformatter = field(default_factory=VideoReformatter)
     frames: int = 0
-    encode_ms_total: float = 0.0
     cpu_s_total: float = 0.0  # this thread's CPU in the rung's calls (not its neighbours')
 
 
@@ -125,9 +120,9 @@ class RenditionLadder:
             if (width, height) in seen or (width, height) == (display.width, display.height):
                 continue  # a tiny display: two divisors round to one size
             seen.add((width, height))
-            bitrate = max(
-                MIN_BITRATE, round(default_bitrate(width, height, fps) * RUNG_BITRATE_FACTOR)
-            )
+            # The rate cap: default_bitrate's bits per pixel (6 Mbit/s at 720p60), no
+            # more: rungs are for links that cannot carry the player's rate.
+            bitrate = max(MIN_BITRATE, default_bitrate(width, height, fps))
             config = EncoderConfig(
                 width=display.width,
                 height=display.height,
@@ -222,7 +217,6 @@ class RenditionLadder:
                 failed.append(rung.track)
                 continue
             rung.frames += 1
-            rung.encode_ms_total += encoded.encode_ms
             rung.cpu_s_total += time.thread_time() - start
             out.append(RungFrame(rung.track, encoded))
         return out, failed
