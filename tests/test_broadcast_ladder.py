@@ -5,54 +5,35 @@ dropped rung ends its subscriptions while the player's track goes on."""
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 
 from server.media.encode import EncodedFrame
 from server.moq import events as ev
 from server.moq.errors import ErrorCode
-from server.session.broadcast import GameBroadcast
-from tests.moq_pipe import Pipe
+from tests.broadcast_harness import Harness
 
 RUNGS = ("video.320x180", "video.160x90")
 CATALOG = json.dumps({"video": {"renditions": {key: {} for key in ("video", *RUNGS)}}}).encode()
 
 
-class LadderHarness:
-    def __init__(self) -> None:
-        self.pipe = Pipe()
-        self.player_keyframes = 0
+class LadderHarness(Harness):
+    """The broadcast harness with the ladder's rungs and callbacks counted."""
+
+    def __init__(self, on_rungs_watched: Callable[[frozenset[str]], None] | None = None) -> None:
         self.rung_keyframes = 0
-        self.broadcast = GameBroadcast(
-            "game",
-            CATALOG,
-            on_input=lambda _path, _payload: None,
-            on_keyframe_wanted=self._player_keyframe,
+        super().__init__(
+            catalog=CATALOG,
             rung_tracks=RUNGS,
             on_rung_keyframe_wanted=self._rung_keyframe,
+            on_rungs_watched=on_rungs_watched,
         )
-        self.broadcast.attach(self.pipe.client)
-        self.relay_events: list[ev.Event] = []
-        self.sync()
 
-    def _player_keyframe(self) -> None:
-        self.player_keyframes += 1
+    @property
+    def player_keyframes(self) -> int:
+        return self.keyframe_requests
 
     def _rung_keyframe(self) -> None:
         self.rung_keyframes += 1
-
-    def sync(self) -> None:
-        for _ in range(10):
-            self.pipe.flush()
-            self.broadcast.handle(self.pipe.client.take_events())
-            self.relay_events += self.pipe.server.take_events()
-            if not self.pipe.flush():
-                break
-
-    def frames(self, subscription: int) -> list[tuple[int, bytes]]:
-        return [
-            (e.sequence, e.payload)
-            for e in self.relay_events
-            if isinstance(e, ev.FrameReceived) and e.subscription_id == subscription
-        ]
 
     def rung(self, track: str, frame_id: int, keyframe: bool) -> None:
         payload = f"{track}:{frame_id}".encode()
@@ -111,8 +92,7 @@ def test_a_dropped_rung_ends_its_subscribers_and_republishes_the_catalog() -> No
 
 def test_the_ladder_is_told_which_rungs_someone_watches() -> None:
     watched: list[frozenset[str]] = []
-    h = LadderHarness()
-    h.broadcast._on_rungs_watched = watched.append
+    h = LadderHarness(on_rungs_watched=watched.append)
     small = h.pipe.server.subscribe("game", "video.160x90")
     h.sync()
     h.pipe.server.subscribe("game", "video.320x180")

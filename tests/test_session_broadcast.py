@@ -4,66 +4,9 @@ from __future__ import annotations
 
 import json
 
-from server.frames.frame import Camera, FrameMeta
-from server.frames.timing import Stage, stamp
-from server.media.encode import EncodedFrame
+from server.frames.timing import Stage
 from server.moq import events as ev
-from server.session.broadcast import GameBroadcast
-from tests.moq_pipe import Pipe
-
-CATALOG = b'{"video":{"renditions":{}}}'
-
-
-class Harness:
-    def __init__(self, audio: bool = False) -> None:
-        self.pipe = Pipe()
-        self.inputs: list[tuple[str, bytes]] = []
-        self.keyframe_requests = 0
-        self.ended: list[str] = []
-        self.broadcast = GameBroadcast(
-            "game",
-            CATALOG,
-            on_input=lambda path, payload: self.inputs.append((path, payload)),
-            on_keyframe_wanted=self._want_keyframe,
-            on_input_ended=self.ended.append,
-            audio=audio,
-        )
-        self.broadcast.attach(self.pipe.client)
-        self.relay_events: list[ev.Event] = []
-        self.sync()
-
-    def _want_keyframe(self) -> None:
-        self.keyframe_requests += 1
-
-    def sync(self) -> None:
-        for _ in range(10):
-            self.pipe.flush()
-            self.broadcast.handle(self.pipe.client.take_events())
-            self.relay_events += self.pipe.server.take_events()
-            if not self.pipe.flush():
-                break
-
-    def frames(self, subscription: int) -> list[tuple[int, bytes]]:
-        return [
-            (e.sequence, e.payload)
-            for e in self.relay_events
-            if isinstance(e, ev.FrameReceived) and e.subscription_id == subscription
-        ]
-
-    def publish(self, frame_id: int, keyframe: bool, game_time_us: int | None = None) -> FrameMeta:
-        if game_time_us is None:
-            game_time_us = frame_id * 50_000
-        meta = FrameMeta(
-            frame_id, Camera.identity(), input_seq=frame_id * 10, game_time_us=game_time_us
-        )
-        stamp(meta.stamps, Stage.RENDER_START)
-        stamp(meta.stamps, Stage.RENDER_END)
-        encoded = EncodedFrame(
-            frame_id, frame_id * 1000, keyframe, f"frag{frame_id}".encode(), 1.0, 0.1, 0.9
-        )
-        self.broadcast.publish_frame(encoded, meta)
-        self.sync()
-        return meta
+from tests.broadcast_harness import CATALOG, Harness
 
 
 def test_relay_learns_the_broadcast_and_gets_the_catalog() -> None:
